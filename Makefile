@@ -1,0 +1,58 @@
+# The two commands of the README: `make demo` (the main job) and `make test` (the test suite).
+# Each creates the environment on a fresh machine (system libraries, a virtualenv in .venv, the pinned
+# packages of requirements.lock) and is idempotent: a second run installs nothing.
+
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+# Debian packages that the wheels need at import time (open3d links libusb-1.0).
+SYSTEM_PACKAGES := libusb-1.0-0
+
+.PHONY: all env system-deps demo test lint bench lock clean
+
+all: demo
+
+system-deps:
+	@missing=""; for p in $(SYSTEM_PACKAGES); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system packages:$$missing"; \
+	  if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing; \
+	fi
+
+$(STAMP): requirements.lock pyproject.toml
+	@$(MAKE) --no-print-directory system-deps
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -r requirements.lock
+	@touch $(STAMP)
+
+env: system-deps $(STAMP)
+
+demo: env
+	$(PY) run.py demo
+
+test: env
+	$(PY) -m pytest -q
+
+lint: env
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+
+bench: env
+	$(PY) run.py bench
+
+# Re-pin the whole environment from pyproject.toml's direct pins.
+lock:
+	rm -rf /tmp/gpom-lock-venv && $(PYTHON) -m venv /tmp/gpom-lock-venv
+	/tmp/gpom-lock-venv/bin/python -m pip install --quiet ".[dev]" && \
+	  /tmp/gpom-lock-venv/bin/python -m pip freeze --exclude gpom > requirements.lock.tmp
+	@{ echo "# Full pinned environment (pip freeze of a fresh install of pyproject.toml [project] + [dev])."; \
+	   echo "# Regenerate with \`make lock\`; installed by \`make env\` (called by \`make demo\` and \`make test\`)."; \
+	   cat requirements.lock.tmp; } > requirements.lock && rm requirements.lock.tmp
+
+clean:
+	rm -rf $(VENV) out .pytest_cache .ruff_cache

@@ -1,0 +1,38 @@
+"""Configuration of the input stage (readers)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class InputConfig(BaseModel):
+    """How a recording is read: topics, CARMEN record types, and the 3D-to-2D height band."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    scan_topic: str | None = Field(
+        None,
+        description="LaserScan or PointCloud2 topic; null auto-detects (exactly one candidate), "
+        "'all' reads every LaserScan topic (several platforms)",
+    )
+    odom_topic: str | None = Field(None, description="nav_msgs/Odometry topic; null auto-detects")
+    reference_topic: str | None = Field(
+        None, description="ground-truth pose topic; null auto-detects a topic named '*ground_truth*'"
+    )
+    carmen_laser: Literal["auto", "FLASER", "RLASER", "ROBOTLASER1"] = Field(
+        "auto", description="CARMEN laser record type to read; auto takes the most frequent one"
+    )
+    cloud_height_band_m: tuple[float, float] = Field(
+        (-0.25, 0.25), description="z band (sensor frame, m) of a 3D cloud turned into a 2D scan"
+    )
+    cloud_scan_beams: int = Field(720, ge=8, le=100_000, description="beams of the 2D scan made from a cloud")
+    cloud_range_max_m: float = Field(80.0, gt=0, description="range_max of the 2D scan made from a cloud")
+
+    @model_validator(mode="after")
+    def _band_ordered(self) -> InputConfig:
+        lo, hi = self.cloud_height_band_m
+        if not lo < hi:
+            raise ValueError(f"cloud_height_band_m must be (low, high) with low < high, got {lo}, {hi}")
+        return self

@@ -1,0 +1,123 @@
+#!/usr/bin/env python3
+"""Command line of the GP occupancy-mapping tool (SPEC section 3).
+
+This file only parses arguments, loads the configuration, calls :mod:`pipeline` and turns known errors
+(:class:`datasets.errors.GpomError`) into one line on stderr with exit status 1. Usage errors exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from datasets.errors import GpomError  # noqa: E402
+
+DESCRIPTION = """\
+Gaussian-process occupancy maps with variance (O'Callaghan & Ramos, IJRR 2012) from ROS bags and CARMEN
+logs, before and after loop closure. With no command, runs the demo on a simulated loop world."""
+
+
+def _add_json(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout and nothing else")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python run.py", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("demo", help="simulate the loop world, run the full pipeline on it, print a summary")
+    p.add_argument("--out", type=Path, default=Path("out/demo"), help="run folder (default: out/demo)")
+    p.add_argument("--seed", type=int, default=0, help="simulation seed (default: 0)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
+    _add_json(p)
+
+    p = sub.add_parser("run", help="full pipeline on a ROS1/ROS2 bag or a CARMEN log")
+    p.add_argument("input", type=Path, help="ROS1 .bag, ROS2 bag (folder, .mcap, .db3), CARMEN log")
+    p.add_argument("--out", type=Path, help="run folder (default: out/<input name>)")
+    p.add_argument("--config", type=Path, help="YAML configuration (default: pipeline/default.yaml)")
+    p.add_argument("--scan-topic", help="LaserScan / PointCloud2 topic (default: auto-detect)")
+    p.add_argument("--odom-topic", help="nav_msgs/Odometry topic (default: auto-detect)")
+    p.add_argument("--resolution", type=float, help="map cell size in metres")
+    p.add_argument("--mapper", choices=["gppol", "gpfol"], help="GP with uncertain (gppol) or exact inputs")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
+    _add_json(p)
+
+    p = sub.add_parser("remap", help="new maps from a run folder with other poses, without the bag")
+    p.add_argument("run_dir", type=Path, help="a run folder written by 'run' or 'demo'")
+    p.add_argument("--poses", type=Path, help="trajectory (.g2o or .tum) to map with")
+    p.add_argument("--covariances", type=Path, help="covariances .npz (keys as trajectory/covariances.npz)")
+    p.add_argument("--resolution", type=float, help="map cell size in metres")
+    p.add_argument("--bounds", help="XMIN,YMIN,XMAX,YMAX in metres (default: from the data)")
+    p.add_argument("--out", type=Path, help="output folder (default: RUN_DIR/remap)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    _add_json(p)
+
+    p = sub.add_parser("simulate", help="write a simulated run as a bag plus its ground-truth raster")
+    p.add_argument("world", choices=["street", "two-platform", "loop"], help="simulated world")
+    p.add_argument("--out", type=Path, required=True, help="bag path: .bag (ROS1), .mcap or a folder (ROS2)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+
+    p = sub.add_parser("convert", help="CARMEN log (or any readable recording) to a ROS bag")
+    p.add_argument("input", type=Path, help="recording to read")
+    p.add_argument("output", type=Path, help=".bag (ROS1), .mcap or a folder (ROS2)")
+    p.add_argument("--scan-topic", help="scan topic of the input, if a bag")
+    p.add_argument("--odom-topic", help="odometry topic of the input, if a bag")
+
+    p = sub.add_parser("evaluate", help="map or SLAM metrics (SPEC section 6)")
+    ev = p.add_subparsers(dest="target", metavar="TARGET", required=True)
+    q = ev.add_parser("map", help="AUC of GPPOL, GPFOL and the occupancy grid (ground truth or hold-out)")
+    q.add_argument("input", type=Path, help="a simulated bag (with INPUT.gt.npz) or a recording")
+    q.add_argument("--seed", type=int, action="append", help="seed(s) of the hold-out split (default: 0-4)")
+    q.add_argument("--config", type=Path, help="YAML configuration")
+    _add_json(q)
+    q = ev.add_parser("slam", help="relations error and ATE of the SLAM trajectory")
+    q.add_argument("input", type=Path, help="recording with odometry and scans")
+    g = q.add_mutually_exclusive_group(required=True)
+    g.add_argument("--relations", type=Path, help="relations file: t1 t2 x y z roll pitch yaw")
+    g.add_argument("--reference", type=Path, help="reference log (e.g. a GMapping-corrected CARMEN log)")
+    q.add_argument("--config", type=Path, help="YAML configuration")
+    _add_json(q)
+
+    p = sub.add_parser("bench", help="performance figures (SPEC section 7)")
+    _add_json(p)
+    return parser
+
+
+def _print_json(obj: Any) -> None:
+    sys.stdout.write(json.dumps(obj, indent=2, default=float) + "\n")
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    from pipeline import commands
+
+    return commands.dispatch(args, _print_json)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        args = parser.parse_args([*(sys.argv[1:] if argv is None else argv), "demo"])
+    try:
+        return _dispatch(args)
+    except GpomError as exc:
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        print(f"error: {message}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,55 @@
+"""Configuration: YAML in and out, unknown keys and out-of-range values rejected with one clear line."""
+
+from __future__ import annotations
+
+import pytest
+
+from datasets.errors import ConfigError
+from pipeline.config import DEFAULT_CONFIG_PATH, Config, config_to_yaml, load_config
+
+
+def test_default_file_matches_model_defaults() -> None:
+    assert load_config() == Config()
+    body = [line for line in DEFAULT_CONFIG_PATH.read_text().splitlines(True) if not line.startswith("#")]
+    assert "".join(body) == config_to_yaml(Config())
+
+
+def test_yaml_round_trip(tmp_path) -> None:
+    cfg = load_config(overrides={"mapping": {"resolution_m": 0.25, "mapper": "gpfol"}})
+    assert cfg.mapping.resolution_m == 0.25
+    path = tmp_path / "c.yaml"
+    path.write_text(config_to_yaml(cfg))
+    assert load_config(path) == cfg
+
+
+def test_unknown_key_is_rejected(tmp_path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text("mapping:\n  resolutoin_m: 0.2\n")
+    with pytest.raises(ConfigError, match=r"unknown configuration key 'mapping\.resolutoin_m'"):
+        load_config(path)
+
+
+def test_unknown_stage_is_rejected(tmp_path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text("maping: {}\n")
+    with pytest.raises(ConfigError, match="unknown configuration key 'maping'"):
+        load_config(path)
+
+
+def test_out_of_range_value_is_rejected(tmp_path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text("mapping:\n  resolution_m: -1\n")
+    with pytest.raises(ConfigError, match=r"invalid value -1 for 'mapping\.resolution_m'"):
+        load_config(path)
+
+
+def test_not_yaml_is_rejected(tmp_path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text("mapping: [unclosed\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(path)
+
+
+def test_missing_file(tmp_path) -> None:
+    with pytest.raises(ConfigError, match="no such configuration file"):
+        load_config(tmp_path / "absent.yaml")
