@@ -24,6 +24,17 @@ def wrap_angle_rad(theta_rad: NDArray | float) -> NDArray | float:
     return (np.asarray(theta_rad) + np.pi) % (2.0 * np.pi) - np.pi
 
 
+def beam_angles_rad(angle_min_rad: float, angle_increment_rad: float, num_beams: int) -> NDArray[np.float32]:
+    """(B,) float32 beam angles ``angle_min + i * angle_increment`` -- THE canonical construction.
+
+    Every reader builds uniform beam angles with this function (parameters rounded to float32 as in a
+    ``sensor_msgs/LaserScan``), so angles survive a round trip through a bag bit for bit.
+    """
+    a0 = np.float64(np.float32(angle_min_rad))
+    inc = np.float64(np.float32(angle_increment_rad))
+    return (a0 + np.arange(num_beams, dtype=np.float64) * inc).astype(np.float32)
+
+
 @dataclass(frozen=True)
 class LaserScan:
     """One planar laser scan in the laser frame.
