@@ -183,7 +183,7 @@ class ChunkScanBag:
         if index_pos == 0:
             raise BagScanError("not indexed: the recording was not closed (try `rosbag reindex`)")
         if index_pos > size:
-            raise BagScanError(f"truncated: {size} bytes, but its index starts at byte {index_pos}", True)
+            raise BagScanError(f"{size} bytes, but its index starts at byte {index_pos}", True)
         pos = dpos + dlen
         chunk_counts: list[dict[int, int]] = []
         while pos < index_pos:
@@ -250,7 +250,7 @@ class ChunkScanBag:
         for _ in range(conn_count):
             fields, dpos, dlen = _record(buf, pos, size, "index connection", True)
             if dpos + dlen > size:
-                raise BagScanError(f"truncated: index connection at byte {pos} runs past the end", True)
+                raise BagScanError(f"index connection at byte {pos} runs past the end", True)
             c = _connection(fields, memoryview(buf)[dpos : dpos + dlen], f"index connection at byte {pos}")
             self.connections.setdefault(c.id, c)
             pos = dpos + dlen
