@@ -107,13 +107,25 @@ def test_round_trip(tmp_path: Path, name: str) -> None:
 
 
 def test_mcap_file_is_a_self_contained_ros2_bag(tmp_path: Path) -> None:
+    from rosbags.interfaces import QosDurability
     from rosbags.rosbag2 import Reader
 
     write_recording(synthetic_recording(n=5), tmp_path / "x.mcap")
     with Reader(tmp_path / "x.mcap") as reader:
         topics = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+        tf_static = next(c for c in reader.connections if c.topic == "/tf_static")
     assert topics["/scan"] == ("sensor_msgs/msg/LaserScan", 5)
     assert topics["/odom"][0] == "nav_msgs/msg/Odometry"
+    assert [q.durability for q in tf_static.ext.offered_qos_profiles] == [QosDurability.TRANSIENT_LOCAL]
+
+
+def test_tf_static_is_latched_in_ros1(tmp_path: Path) -> None:
+    from rosbags.rosbag1 import Reader
+
+    write_recording(synthetic_recording(n=5), tmp_path / "x.bag")
+    with Reader(tmp_path / "x.bag") as reader:
+        latching = {c.topic: c.ext.latching for c in reader.connections}
+    assert latching["/tf_static"] == 1 and latching["/scan"] is None
 
 
 def test_several_sources_round_trip(tmp_path: Path) -> None:

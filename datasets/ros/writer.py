@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from rosbags import rosbag1, rosbag2
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.serde import SerdeError
 
@@ -54,6 +55,18 @@ from datasets.ros.typestores import BagKind, header_msg, pose_msg, standard_type
 from datasets.types import Recording, Trajectory
 
 ANGLE_SEARCH_ULPS = 64  # float32 neighbours of the angle_increment estimate tried on each side
+# ROS2 QoS of a latched topic (/tf_static): reliable, transient local, keep last 1; default durations.
+LATCHED_QOS = Qos(
+    QosHistory.KEEP_LAST,
+    1,
+    QosReliability.RELIABLE,
+    QosDurability.TRANSIENT_LOCAL,
+    QosTime(0, 0),
+    QosTime(0, 0),
+    QosLiveliness.AUTOMATIC,
+    QosTime(0, 0),
+    False,
+)
 
 
 def bag_kind_of_path(path: Path) -> tuple[BagKind, str]:
@@ -106,7 +119,11 @@ class BagWriter:
         return time_msg(self.typestore, stamp_ns)
 
     def write(self, topic: str, msgtype: str, stamp_ns: int, msg: object, latching: bool = False) -> None:
-        """Append ``msg`` of ``msgtype`` (e.g. ``sensor_msgs/msg/LaserScan``) on ``topic`` at ``stamp_ns``."""
+        """Append ``msg`` of ``msgtype`` (e.g. ``sensor_msgs/msg/LaserScan``) on ``topic`` at ``stamp_ns``.
+
+        ``latching`` marks the topic latched (ROS1 ``latching=1``, ROS2 transient-local QoS), for
+        ``/tf_static`` and maps. It is taken from the first message of a topic.
+        """
         key = (topic, msgtype)
         conn = self._conns.get(key)
         if conn is None:
@@ -117,7 +134,10 @@ class BagWriter:
                     topic, msgtype, typestore=self.typestore, latching=1 if latching else None
                 )
             else:
-                conn = self._raw.add_connection(topic, msgtype, typestore=self.typestore)
+                qos = [LATCHED_QOS] if latching else []
+                conn = self._raw.add_connection(
+                    topic, msgtype, typestore=self.typestore, offered_qos_profiles=qos
+                )
             self._conns[key] = conn
         try:
             if self.kind == "ros1":
