@@ -184,6 +184,9 @@ def test_global_ground_truth_serves_every_namespace(tmp_path: Path) -> None:
     back = open_dataset(tmp_path / "g.bag", scan_topic="all")
     assert back.meta["reference_topics"] == {"/a/scan": "/ground_truth", "/b/scan": "/ground_truth"}
     np.testing.assert_allclose(back.reference.poses_xytheta[:, 0], [0, 0, 1, 1, 2, 2])
+    assert back.meta["scans_outside_pose_topics"] == {"/ground_truth": 0}
+    one = open_dataset(tmp_path / "g.bag", scan_topic="/a/scan", reference_topic="/ground_truth")
+    assert one.meta["reference_topic"] == "/ground_truth"
 
 
 @pytest.mark.parametrize(
@@ -356,6 +359,37 @@ def test_topic_errors_list_what_exists(tmp_path: Path) -> None:
     with pytest.raises(TopicError, match=r"no odometry topic /wheels; topics: /front/scan"):
         open_dataset(path, scan_topic="/scan", odom_topic="/wheels")
     assert len(open_dataset(path, scan_topic="/front/scan").scans) == 1
+
+
+def test_scans_outside_the_ground_truth_span_are_counted(tmp_path: Path) -> None:
+    from datasets.ros.typestores import pose_msg
+
+    gt = tmp_path / "gt.bag"
+    with open_bag_writer(gt) as w:
+        laser = w.types["sensor_msgs/msg/LaserScan"]
+        for stamp in T0 + MS * np.arange(5):
+            msg = laser(
+                header=w.header(int(stamp), "laser"),
+                angle_min=0.0,
+                angle_max=0.1,
+                angle_increment=0.1,
+                time_increment=0.0,
+                scan_time=0.0,
+                range_min=0.0,
+                range_max=10.0,
+                ranges=np.ones(2, np.float32),
+                intensities=np.zeros(0, np.float32),
+            )
+            w.write("/scan", "sensor_msgs/msg/LaserScan", int(stamp), msg)
+        for i in (1, 2):  # ground truth covers scans 1..2 only
+            stamp = T0 + MS * i
+            msg = w.types["geometry_msgs/msg/PoseStamped"](
+                header=w.header(stamp, "map"), pose=pose_msg(w.typestore, float(i), 0.0, 0.0)
+            )
+            w.write("/ground_truth", "geometry_msgs/msg/PoseStamped", stamp, msg)
+    back = open_dataset(gt)
+    assert back.meta["scans_outside_pose_topics"] == {"/ground_truth": 3}
+    np.testing.assert_allclose(back.reference.poses_xytheta[:, 0], [1, 1, 2, 2, 2])
 
 
 def test_no_scan_topic_error_and_odometry_only_reading(tmp_path: Path) -> None:

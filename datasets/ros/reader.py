@@ -98,6 +98,7 @@ class _BagReading:
         self.bag = bag
         self.cfg = cfg
         self.path = bag.path
+        self.clamped: dict[str, int] = {}  # pose topic -> scans outside its time span (end pose used)
 
     # -- topic choice ---------------------------------------------------------------------------------
 
@@ -227,6 +228,7 @@ class _BagReading:
             if mounts[0] is not None:
                 laser_in_base = mounts[0]
             meta["base_frame"] = base
+        meta["scans_outside_pose_topics"] = self.clamped
         return Recording(
             source=self.path,
             format=self.bag.kind,
@@ -344,8 +346,11 @@ class _BagReading:
         )
 
     def _at_scans(self, traj: Trajectory, stamps: NDArray[np.int64], topic: str) -> NDArray:
+        """Poses of ``traj`` at ``stamps``; scans outside its time span get the end pose (counted in meta)."""
         if len(traj) == 0:
             raise DatasetError(f"{self.path}: pose topic {topic} holds no messages")
+        outside = int(np.count_nonzero((stamps < traj.stamps_ns[0]) | (stamps > traj.stamps_ns[-1])))
+        self.clamped[topic] = outside
         return traj.interpolate(stamps)
 
     def _per_scan_reference(
