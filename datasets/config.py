@@ -15,7 +15,7 @@ class InputConfig(BaseModel):
     scan_topic: str | None = Field(
         None,
         description="LaserScan or PointCloud2 topic; null auto-detects (exactly one candidate), "
-        "'all' reads every LaserScan topic (several platforms)",
+        "'all' reads every LaserScan topic (several platforms), 'none' reads a bag without scans",
     )
     odom_topic: str | None = Field(None, description="nav_msgs/Odometry topic; null auto-detects")
     reference_topic: str | None = Field(

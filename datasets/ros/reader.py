@@ -1,0 +1,518 @@
+"""``read_ros1`` / ``read_ros2``: a ROS bag to a :class:`~datasets.types.Recording`.
+
+What is read (stamps are header stamps in integer ns):
+
+- scans: ``sensor_msgs/LaserScan`` (ranges float32 as recorded; angles from
+  :func:`~datasets.types.beam_angles_rad`, the canonical construction) or ``sensor_msgs/PointCloud2``
+  (a lazy :class:`~datasets.types.CloudSequence` plus one planar scan per cloud from
+  :func:`~datasets.cloud.cloud_to_scan`);
+- ``odometry``: ``nav_msgs/Odometry`` (x, y, yaw; the (x, y, yaw) block of the pose covariance when it is
+  not all zero);
+- ``reference``: a ground-truth topic (name contains ``ground_truth``; ``PoseStamped``,
+  ``PoseWithCovarianceStamped`` or ``Odometry``) interpolated at the scan stamps;
+- ``scan_poses``: the topic ``<scan topic>_pose`` (``PoseStamped``, written by
+  :func:`~datasets.ros.writer.write_recording` for a recording's scan poses), at the scan stamps;
+- ``laser_in_base_xytheta``: the tf chain (``/tf_static``, then the first ``/tf`` value of each edge) from
+  the odometry's child frame (else ``base_link``) to the scan's frame, when present.
+
+Topic choice (:class:`~datasets.config.InputConfig`): an explicit topic must exist with a fitting type;
+``None`` auto-detects exactly one candidate (preferring the scan topic's namespace for odometry and ground
+truth). ``scan_topic="all"`` reads every LaserScan topic (several platforms, ``ScanSequence.sources`` = the
+topic names); then the reference of ``/ns/scan`` comes from ``/ns/...ground_truth...`` or else the single
+global ground-truth topic, and per-namespace odometry goes to ``meta["odometry_by_source"]``.
+``scan_topic="none"`` reads a bag without scans (e.g. odometry only); by default a bag without a scan topic
+is a :class:`~datasets.errors.TopicError` that lists its topics.
+
+Bad input (SPEC section 8) raises one line naming the file: negative ranges, empty scans and header stamps
+going backwards within a topic name the topic and the message. ``inf`` and ``NaN`` ranges are accepted:
+REP 117 uses them for "no return" (and ``-inf`` for "too close").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from datasets.cloud import cloud_to_scan
+from datasets.config import InputConfig
+from datasets.errors import DatasetError, TopicError
+from datasets.ros.bag import Bag, open_bag
+from datasets.ros.typestores import BagKind, stamp_ns_of, yaw_of_quaternion
+from datasets.types import (
+    CloudSequence,
+    PointCloud,
+    Recording,
+    ScanSequence,
+    Trajectory,
+    beam_angles_rad,
+)
+
+SCAN_TYPE = "sensor_msgs/msg/LaserScan"
+CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
+ODOM_TYPE = "nav_msgs/msg/Odometry"
+POSE_STAMPED_TYPE = "geometry_msgs/msg/PoseStamped"
+POSE_COV_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
+REFERENCE_TYPES = (POSE_STAMPED_TYPE, POSE_COV_TYPE, ODOM_TYPE)
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+SCAN_POSE_SUFFIX = "_pose"  # scan poses of scan topic T are on T + "_pose"
+
+ALL_TOPICS = "all"
+NO_SCANS = "none"
+
+# sensor_msgs/PointField datatypes
+_POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+
+
+def read_ros1(path: Path, cfg: InputConfig) -> Recording:
+    """Read a ROS1 ``.bag`` (damaged indexes and outdated embedded definitions are handled)."""
+    return read_bag(Path(path), cfg, "ros1")
+
+
+def read_ros2(path: Path, cfg: InputConfig) -> Recording:
+    """Read a ROS2 bag: a folder with ``metadata.yaml``, a ``.mcap`` or a ``.db3`` file."""
+    return read_bag(Path(path), cfg, "ros2")
+
+
+def read_bag(path: Path, cfg: InputConfig, kind: BagKind) -> Recording:
+    """Read the bag at ``path`` of ``kind`` (see the module docstring)."""
+    with open_bag(path, kind) as bag:
+        return _BagReading(bag, cfg).recording()
+
+
+def namespace_of(topic: str) -> str:
+    """``/ns/scan`` -> ``/ns``; ``/scan`` -> ``""``."""
+    return topic.rsplit("/", 1)[0] if "/" in topic else ""
+
+
+def _in_namespace(topic: str, ns: str) -> bool:
+    return bool(ns) and topic.startswith(ns + "/")
+
+
+class _BagReading:
+    """One reading of one bag: topic choices, then the streams."""
+
+    def __init__(self, bag: Bag, cfg: InputConfig) -> None:
+        self.bag = bag
+        self.cfg = cfg
+        self.path = bag.path
+        self.clamped: dict[str, int] = {}  # pose topic -> scans outside its time span (end pose used)
+
+    # -- topic choice ---------------------------------------------------------------------------------
+
+    def _of_types(self, types: Sequence[str]) -> list[str]:
+        return sorted(t.name for t in self.bag.topics.values() if t.msgtype in types)
+
+    def _require(self, topic: str, types: Sequence[str], what: str) -> str:
+        info = self.bag.topics.get(topic)
+        if info is None:
+            raise TopicError(f"{self.path}: no {what} topic {topic}; topics: {self.bag.describe_topics()}")
+        if info.msgtype not in types:
+            raise TopicError(f"{self.path}: {what} topic {topic} is {info.msgtype}, not {' or '.join(types)}")
+        return topic
+
+    def scan_topics(self) -> list[str]:
+        want = self.cfg.scan_topic
+        if want == NO_SCANS:
+            return []
+        if want == ALL_TOPICS:
+            found = self._of_types([SCAN_TYPE])
+            if not found:
+                raise TopicError(
+                    f"{self.path}: no sensor_msgs/LaserScan topic; topics: {self.bag.describe_topics()}"
+                )
+            return found
+        if want is not None:
+            return [self._require(want, (SCAN_TYPE, CLOUD_TYPE), "scan")]
+        found = self._of_types([SCAN_TYPE]) or self._of_types([CLOUD_TYPE])
+        if len(found) == 1:
+            return found
+        if not found:
+            raise TopicError(
+                f"{self.path}: no sensor_msgs/LaserScan or PointCloud2 topic; topics: "
+                f"{self.bag.describe_topics()} (scan topic 'none' reads the bag without scans)"
+            )
+        raise TopicError(
+            f"{self.path}: several scan topics ({', '.join(found)}); choose one with --scan-topic "
+            "(or 'all' for every LaserScan topic)"
+        )
+
+    def _pick(self, candidates: list[str], ns: str, what: str, option: str) -> str | None:
+        """Exactly one of ``candidates`` (those in namespace ``ns`` first), None if there is none."""
+        if len(candidates) > 1 and ns:
+            local = [t for t in candidates if _in_namespace(t, ns)]
+            if local:
+                candidates = local
+        if len(candidates) > 1:
+            raise TopicError(
+                f"{self.path}: several {what} topics ({', '.join(candidates)}); choose one with {option}"
+            )
+        return candidates[0] if candidates else None
+
+    def odom_topic(self, ns: str) -> str | None:
+        if self.cfg.odom_topic is not None:
+            return self._require(self.cfg.odom_topic, (ODOM_TYPE,), "odometry")
+        cands = [t for t in self._of_types([ODOM_TYPE]) if "ground_truth" not in t]
+        return self._pick(cands, ns, "odometry", "--odom-topic")
+
+    def reference_candidates(self) -> list[str]:
+        return [t for t in self._of_types(REFERENCE_TYPES) if "ground_truth" in t]
+
+    def reference_topic(self, ns: str) -> str | None:
+        if self.cfg.reference_topic is not None:
+            return self._require(self.cfg.reference_topic, REFERENCE_TYPES, "reference")
+        return self._pick(self.reference_candidates(), ns, "ground-truth", "input.reference_topic")
+
+    # -- the recording --------------------------------------------------------------------------------
+
+    def recording(self) -> Recording:
+        topics = self.scan_topics()
+        meta: dict = {
+            "bag_kind": self.bag.kind,
+            "topics": {t.name: {"type": t.msgtype, "count": t.count} for t in self.bag.topics.values()},
+            "scan_topics": topics,
+            "notes": self.bag.notes,
+        }
+        clouds = None
+        if not topics:
+            scans = None
+        elif self.bag.topics[topics[0]].msgtype == CLOUD_TYPE:
+            scans, clouds = self._read_clouds(topics[0])
+        else:
+            scans = self._read_scans(topics)
+        multi = len(topics) > 1
+        namespaces = [namespace_of(t) for t in topics]
+
+        # odometry
+        odometry = None
+        if multi and self.cfg.odom_topic is None:
+            by_source = {}
+            for topic, ns in zip(topics, namespaces, strict=True):
+                local = [
+                    t for t in self._of_types([ODOM_TYPE]) if _in_namespace(t, ns) and "ground_truth" not in t
+                ]
+                if len(local) > 1:
+                    raise TopicError(f"{self.path}: several odometry topics in {ns} ({', '.join(local)})")
+                if local:
+                    by_source[topic] = self._read_poses(local[0])
+                    meta.setdefault("odom_topics", {})[topic] = local[0]
+            glob = [
+                t
+                for t in self._of_types([ODOM_TYPE])
+                if "ground_truth" not in t and not any(_in_namespace(t, ns) for ns in namespaces)
+            ]
+            odom_topic = self._pick(glob, "", "odometry", "--odom-topic")
+            meta["odometry_by_source"] = by_source
+        else:
+            odom_topic = self.odom_topic(namespaces[0] if namespaces else "")
+        if odom_topic is not None:
+            odometry = self._read_poses(odom_topic)
+        meta["odom_topic"] = odom_topic
+
+        # reference and scan poses, at the scan stamps
+        reference = scan_poses = None
+        if scans is not None:
+            reference = self._per_scan_reference(scans, topics, namespaces, meta)
+            scan_poses = self._per_scan_topic(scans, topics, [t + SCAN_POSE_SUFFIX for t in topics], meta)
+
+        # laser mounting from tf
+        laser_in_base = np.zeros(3)
+        if scans is not None:
+            base = self._base_frame(odom_topic)
+            mounts = self._laser_in_base(
+                base, [scans.frame_ids[int(np.argmax(scans.source_index == i))] for i in range(len(topics))]
+            )
+            meta["laser_in_base_by_source"] = dict(zip(topics, mounts, strict=True))
+            if mounts[0] is not None:
+                laser_in_base = mounts[0]
+            meta["base_frame"] = base
+        meta["scans_outside_pose_topics"] = self.clamped
+        return Recording(
+            source=self.path,
+            format=self.bag.kind,
+            scans=scans,
+            odometry=odometry,
+            scan_poses=scan_poses,
+            reference=reference,
+            laser_in_base_xytheta=laser_in_base,
+            clouds=clouds,
+            meta=meta,
+        )
+
+    # -- streams --------------------------------------------------------------------------------------
+
+    def _check_order(self, topic: str, i: int, stamp: int, previous: int | None) -> None:
+        if previous is not None and stamp < previous:
+            raise DatasetError(
+                f"{self.path}: topic {topic}: header stamp goes backwards at message {i} "
+                f"({stamp} ns after {previous} ns)"
+            )
+
+    def _read_scans(self, topics: list[str]) -> ScanSequence:
+        ranges: list[NDArray] = []
+        angles: list[NDArray] = []
+        stamps: list[int] = []
+        rmin: list[float] = []
+        rmax: list[float] = []
+        frames: list[str] = []
+        source: list[int] = []
+        angle_cache: dict[tuple[float, float, int], NDArray] = {}
+        for k, topic in enumerate(topics):
+            previous = None
+            for i, (_, _, msg) in enumerate(self.bag.messages([topic])):
+                stamp = stamp_ns_of(msg.header.stamp)
+                self._check_order(topic, i, stamp, previous)
+                previous = stamp
+                r = np.array(msg.ranges, dtype=np.float32)
+                if r.size == 0:
+                    raise DatasetError(
+                        f"{self.path}: topic {topic}: message {i} (stamp {stamp} ns) is an empty scan"
+                    )
+                negative = np.flatnonzero(np.isfinite(r) & (r < 0))
+                if negative.size:
+                    j = int(negative[0])
+                    raise DatasetError(
+                        f"{self.path}: topic {topic}: message {i} (stamp {stamp} ns) has {negative.size} "
+                        f"negative ranges (beam {j}: {r[j]} m)"
+                    )
+                key = (float(msg.angle_min), float(msg.angle_increment), int(r.size))
+                if key not in angle_cache:
+                    angle_cache[key] = beam_angles_rad(*key)
+                ranges.append(r)
+                angles.append(angle_cache[key])
+                stamps.append(stamp)
+                rmin.append(float(msg.range_min))
+                rmax.append(float(msg.range_max))
+                frames.append(msg.header.frame_id)
+                source.append(k)
+        if not ranges:
+            raise DatasetError(f"{self.path}: scan topic {', '.join(topics)} holds no messages")
+        order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
+        return ScanSequence(
+            [ranges[i] for i in order],
+            [angles[i] for i in order],
+            np.asarray(stamps, dtype=np.int64)[order],
+            np.asarray(rmin)[order],
+            np.asarray(rmax)[order],
+            [frames[i] for i in order],
+            np.asarray(source, dtype=np.int32)[order],
+            topics,
+        )
+
+    def _read_clouds(self, topic: str) -> tuple[ScanSequence, CloudSequence]:
+        cfg = self.cfg
+        ranges, angles, stamps, frames, bag_times = [], [], [], [], []
+        previous = None
+        for i, (_, t, msg) in enumerate(self.bag.messages([topic])):
+            stamp = stamp_ns_of(msg.header.stamp)
+            self._check_order(topic, i, stamp, previous)
+            previous = stamp
+            points, _ = cloud_points(msg, f"{self.path}: topic {topic}: message {i}")
+            r, a = cloud_to_scan(points, cfg.cloud_height_band_m, cfg.cloud_scan_beams, cfg.cloud_range_max_m)
+            ranges.append(r)
+            angles.append(a)
+            stamps.append(stamp)
+            frames.append(msg.header.frame_id)
+            bag_times.append(t)
+        if not ranges:
+            raise DatasetError(f"{self.path}: scan topic {topic} holds no messages")
+        scans = ScanSequence(ranges, angles, stamps, 0.0, cfg.cloud_range_max_m, frames, sources=[topic])
+        loader = _CloudLoader(self.path, self.bag.kind, topic, bag_times)
+        return scans, CloudSequence(np.asarray(stamps, dtype=np.int64), loader)
+
+    def _read_poses(self, topic: str) -> Trajectory:
+        """A trajectory from an Odometry / PoseStamped / PoseWithCovarianceStamped topic."""
+        msgtype = self.bag.topics[topic].msgtype
+        stamps, poses, covs = [], [], []
+        frame = "world"
+        previous = None
+        for i, (_, _, msg) in enumerate(self.bag.messages([topic])):
+            stamp = stamp_ns_of(msg.header.stamp)
+            self._check_order(topic, i, stamp, previous)
+            previous = stamp
+            frame = msg.header.frame_id
+            pose = msg.pose if msgtype == POSE_STAMPED_TYPE else msg.pose.pose
+            q = pose.orientation
+            stamps.append(stamp)
+            poses.append((pose.position.x, pose.position.y, yaw_of_quaternion(q.x, q.y, q.z, q.w)))
+            if msgtype != POSE_STAMPED_TYPE:
+                c = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)
+                covs.append(c[np.ix_([0, 1, 5], [0, 1, 5])])
+        cov = np.asarray(covs) if covs and np.any(np.asarray(covs)) else None
+        return Trajectory(
+            np.asarray(stamps, dtype=np.int64), np.asarray(poses, dtype=np.float64).reshape(-1, 3), frame, cov
+        )
+
+    def _at_scans(self, traj: Trajectory, stamps: NDArray[np.int64], topic: str) -> NDArray:
+        """Poses of ``traj`` at ``stamps``; scans outside its time span get the end pose (counted in meta)."""
+        if len(traj) == 0:
+            raise DatasetError(f"{self.path}: pose topic {topic} holds no messages")
+        outside = int(np.count_nonzero((stamps < traj.stamps_ns[0]) | (stamps > traj.stamps_ns[-1])))
+        self.clamped[topic] = outside
+        return traj.interpolate(stamps)
+
+    def _per_scan_reference(
+        self, scans: ScanSequence, topics: list[str], namespaces: list[str], meta: dict
+    ) -> Trajectory | None:
+        if len(topics) == 1 or self.cfg.reference_topic is not None:
+            topic = self.reference_topic(namespaces[0])
+            meta["reference_topic"] = topic
+            if topic is None:
+                return None
+            traj = self._read_poses(topic)
+            return Trajectory(scans.stamps_ns, self._at_scans(traj, scans.stamps_ns, topic), traj.frame_id)
+        cands = self.reference_candidates()
+        chosen = []
+        for ns in namespaces:
+            local = [t for t in cands if _in_namespace(t, ns)]
+            glob = [t for t in cands if not any(_in_namespace(t, n) for n in namespaces)]
+            pick = local or glob
+            if len(pick) > 1:
+                raise TopicError(
+                    f"{self.path}: several ground-truth topics for namespace '{ns}' ({', '.join(pick)}); "
+                    "choose one with input.reference_topic"
+                )
+            chosen.append(pick[0] if pick else None)
+        meta["reference_topics"] = dict(zip(topics, chosen, strict=True))
+        return self._per_scan_topic(scans, topics, chosen, None)
+
+    def _per_scan_topic(
+        self, scans: ScanSequence, topics: list[str], pose_topics: list[str | None], meta: dict | None
+    ) -> Trajectory | None:
+        """Poses at every scan stamp from one pose topic per source; None unless every source has one."""
+        present = [t if t is not None and t in self.bag.topics else None for t in pose_topics]
+        if any(t is None for t in present):
+            return None
+        poses = np.empty((len(scans), 3))
+        frame = "world"
+        for k, topic in enumerate(present):
+            traj = self._read_poses(topic)
+            frame = traj.frame_id
+            sel = scans.source_index == k
+            poses[sel] = self._at_scans(traj, scans.stamps_ns[sel], topic)
+        if meta is not None:
+            meta["scan_pose_topics"] = present
+        return Trajectory(scans.stamps_ns, poses, frame)
+
+    # -- tf -------------------------------------------------------------------------------------------
+
+    def _base_frame(self, odom_topic: str | None) -> str:
+        if odom_topic is not None:
+            for _, _, msg in self.bag.messages([odom_topic]):
+                if msg.child_frame_id:
+                    return msg.child_frame_id.strip("/")
+                break
+        return "base_link"
+
+    def _laser_in_base(self, base: str, laser_frames: list[str]) -> list[NDArray | None]:
+        """(3,) x, y, yaw of each laser frame in ``base`` through tf, or None without a chain."""
+        edges: dict[tuple[str, str], NDArray] = {}
+        for name in ("/tf_static", "/tf"):
+            if name not in self.bag.topics or self.bag.topics[name].msgtype != TF_TYPE:
+                continue
+            static = name == "/tf_static"
+            for _, _, msg in self.bag.messages([name]):
+                for tr in msg.transforms:
+                    key = (tr.header.frame_id.strip("/"), tr.child_frame_id.strip("/"))
+                    if key in edges and not static:
+                        continue
+                    edges[key] = _transform_matrix(tr.transform)
+        out: list[NDArray | None] = []
+        for laser in laser_frames:
+            m = _chain(edges, base, laser.strip("/"))
+            out.append(None if m is None else np.array([m[0, 3], m[1, 3], np.arctan2(m[1, 0], m[0, 0])]))
+        return out
+
+
+def _transform_matrix(tf: object) -> NDArray:
+    """4x4 homogeneous matrix of a ``geometry_msgs/Transform``."""
+    t, q = tf.translation, tf.rotation  # type: ignore[attr-defined]
+    x, y, z, w = q.x, q.y, q.z, q.w
+    m = np.eye(4)
+    m[:3, :3] = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    m[:3, 3] = [t.x, t.y, t.z]
+    return m
+
+
+def _chain(edges: dict[tuple[str, str], NDArray], start: str, goal: str) -> NDArray | None:
+    """Pose of ``goal`` in ``start`` through the tf tree (edges used in either direction), breadth first."""
+    if start == goal:
+        return np.eye(4)
+    neighbours: dict[str, list[tuple[str, NDArray]]] = {}
+    for (parent, child), m in edges.items():
+        neighbours.setdefault(parent, []).append((child, m))
+        neighbours.setdefault(child, []).append((parent, np.linalg.inv(m)))
+    frontier = [(start, np.eye(4))]
+    seen = {start}
+    while frontier:
+        nxt = []
+        for frame, pose in frontier:
+            for other, m in neighbours.get(frame, []):
+                if other in seen:
+                    continue
+                if other == goal:
+                    return pose @ m
+                seen.add(other)
+                nxt.append((other, pose @ m))
+        frontier = nxt
+    return None
+
+
+def cloud_points(msg: object, where: str) -> tuple[NDArray[np.float32], NDArray[np.float32] | None]:
+    """(P, 3) finite x, y, z of a ``sensor_msgs/PointCloud2`` and (P,) intensity if it has one.
+
+    The fields' offsets, datatypes and the endianness come from the message; rows may be padded
+    (``row_step > width * point_step``). Vectorised through a numpy structured dtype.
+    """
+    fields = {f.name: f for f in msg.fields}  # type: ignore[attr-defined]
+    missing = [n for n in ("x", "y", "z") if n not in fields]
+    if missing:
+        raise DatasetError(f"{where}: point cloud without field(s) {', '.join(missing)}")
+    endian = ">" if msg.is_bigendian else "<"  # type: ignore[attr-defined]
+    names = ["x", "y", "z"] + (["intensity"] if "intensity" in fields else [])
+    formats, offsets = [], []
+    for n in names:
+        f = fields[n]
+        if f.datatype not in _POINT_FIELD_TYPES:
+            raise DatasetError(f"{where}: field {n} has unknown datatype {f.datatype}")
+        formats.append(endian + _POINT_FIELD_TYPES[f.datatype])
+        offsets.append(f.offset)
+    step = int(msg.point_step)  # type: ignore[attr-defined]
+    width, height, row_step = int(msg.width), int(msg.height), int(msg.row_step)  # type: ignore[attr-defined]
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
+    data = np.asarray(msg.data, dtype=np.uint8)  # type: ignore[attr-defined]
+    if step * width > row_step or data.size < row_step * height:
+        raise DatasetError(
+            f"{where}: point cloud data of {data.size} bytes does not hold {height} rows of {width} points "
+            f"(point_step {step}, row_step {row_step})"
+        )
+    rows = data[: row_step * height].reshape(height, row_step)[:, : step * width]
+    arr = np.ascontiguousarray(rows).view(dtype).reshape(-1)
+    pts = np.stack([arr["x"], arr["y"], arr["z"]], axis=1).astype(np.float32)
+    keep = np.isfinite(pts).all(axis=1)
+    intensity = arr["intensity"].astype(np.float32)[keep] if "intensity" in names else None
+    return pts[keep], intensity
+
+
+class _CloudLoader:
+    """Loads cloud ``i`` from the bag on demand (the bag is reopened; clouds are never all in memory)."""
+
+    def __init__(self, path: Path, kind: BagKind, topic: str, bag_times_ns: list[int]) -> None:
+        self.path, self.kind, self.topic = path, kind, topic
+        self.bag_times = np.asarray(bag_times_ns, dtype=np.int64)
+
+    def __call__(self, i: int) -> PointCloud:
+        t = int(self.bag_times[i])
+        ordinal = i - int(np.searchsorted(self.bag_times, t, side="left"))
+        with open_bag(self.path, self.kind) as bag:
+            for k, (_, _, msg) in enumerate(bag.messages([self.topic], start=t, stop=t + 1)):
+                if k == ordinal:
+                    pts, intensity = cloud_points(msg, f"{self.path}: topic {self.topic}: cloud {i}")
+                    return PointCloud(pts, stamp_ns_of(msg.header.stamp), msg.header.frame_id, intensity)
+        raise DatasetError(f"{self.path}: topic {self.topic}: cloud {i} is gone from the bag")
