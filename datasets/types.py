@@ -40,8 +40,8 @@ class LaserScan:
     """One planar laser scan in the laser frame.
 
     ``ranges_m`` (B,) and ``angles_rad`` (B,) describe the beams. A beam with ``range >= range_max_m``,
-    ``inf`` or ``NaN`` is a *no return* (free space only, SPEC section 2); ranges below ``range_min_m`` are
-    invalid and dropped by consumers.
+    ``+inf`` or ``NaN`` is a *no return* (free space only, SPEC section 2); ranges below ``range_min_m``
+    (``-inf`` included) are invalid and dropped by consumers.
     """
 
     ranges_m: NDArray[np.float32]
@@ -56,9 +56,14 @@ class LaserScan:
         return int(self.ranges_m.shape[0])
 
     def no_return_mask(self) -> NDArray[np.bool_]:
-        """(B,) True for beams without a return (>= range_max, inf or NaN)."""
+        """(B,) True for beams without a return (>= range_max, +inf or NaN).
+
+        ``-inf`` ("too close", REP 117) is neither a return nor a no-return: it is dropped like a range
+        below ``range_min_m``.
+        """
         r = self.ranges_m
-        return ~np.isfinite(r) | (r >= self.range_max_m)
+        with np.errstate(invalid="ignore"):
+            return np.isnan(r) | (r >= self.range_max_m)
 
     def hit_mask(self) -> NDArray[np.bool_]:
         """(B,) True for beams with a valid return (range_min <= r < range_max)."""
@@ -204,8 +209,9 @@ class Trajectory:
         """(M, 3) poses at ``stamps_ns``: linear in x, y and in unwrapped theta; clamped at the ends."""
         if len(self) == 0:
             raise DatasetError("cannot interpolate an empty trajectory")
-        t = self.stamps_ns.astype(np.float64)
-        q = np.asarray(stamps_ns, dtype=np.float64)
+        t0 = self.stamps_ns[0]
+        t = (self.stamps_ns - t0).astype(np.float64)  # relative ns: exact in float64 for ~104 days
+        q = (np.asarray(stamps_ns, dtype=np.int64) - t0).astype(np.float64)
         theta = np.unwrap(self.poses_xytheta[:, 2])
         out = np.empty((q.shape[0], 3))
         out[:, 0] = np.interp(q, t, self.poses_xytheta[:, 0])

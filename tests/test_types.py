@@ -19,14 +19,14 @@ def test_beam_angles_are_float32_and_uniform() -> None:
 
 def test_scan_masks() -> None:
     scan = LaserScan(
-        ranges_m=np.array([0.01, 1.0, 30.0, np.inf, np.nan], np.float32),
-        angles_rad=beam_angles_rad(0, 0.1, 5),
+        ranges_m=np.array([0.01, 1.0, 30.0, np.inf, np.nan, -np.inf], np.float32),
+        angles_rad=beam_angles_rad(0, 0.1, 6),
         stamp_ns=5,
         range_min_m=0.05,
         range_max_m=30.0,
     )
-    assert scan.hit_mask().tolist() == [False, True, False, False, False]
-    assert scan.no_return_mask().tolist() == [False, False, True, True, True]
+    assert scan.hit_mask().tolist() == [False, True, False, False, False, False]
+    assert scan.no_return_mask().tolist() == [False, False, True, True, True, False]
     np.testing.assert_allclose(scan.points_xy_m(), [[np.cos(0.1), np.sin(0.1)]], rtol=1e-6)
 
 
@@ -54,6 +54,12 @@ def test_trajectory_interpolation_across_pi() -> None:
     mid = traj.interpolate(np.array([5]))[0]
     np.testing.assert_allclose(mid[:2], [0.5, 1.0])
     assert abs(wrap_angle_rad(mid[2] - np.pi)) < 1e-9
+
+
+def test_interpolation_is_exact_at_epoch_stamps() -> None:
+    t0 = 1_700_000_000_000_000_000  # 2023 in ns: float64 of the absolute stamp would quantise to 256 ns
+    traj = Trajectory(np.array([t0, t0 + 1000]), np.array([[0.0, 0, 0], [1000.0, 0, 0]]))
+    np.testing.assert_allclose(traj.interpolate(np.array([t0 + 1, t0 + 999]))[:, 0], [1.0, 999.0])
 
 
 def test_cloud_to_scan_keeps_nearest_point_in_band() -> None:
