@@ -45,7 +45,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", type=Path, help="ROS1 .bag, ROS2 bag (folder, .mcap, .db3), CARMEN log")
     p.add_argument("--out", type=Path, help="run folder (default: out/<input name>)")
     p.add_argument("--config", type=Path, help="YAML configuration (default: pipeline/default.yaml)")
-    p.add_argument("--scan-topic", help="LaserScan / PointCloud2 topic (default: auto-detect)")
+    p.add_argument(
+        "--scan-topic",
+        help="LaserScan / PointCloud2 topic (default: auto-detect); 'all': every LaserScan topic",
+    )
     p.add_argument("--odom-topic", help="nav_msgs/Odometry topic (default: auto-detect)")
     p.add_argument("--resolution", type=float, help="map cell size in metres")
     p.add_argument("--mapper", choices=["gppol", "gpfol"], help="GP with uncertain (gppol) or exact inputs")
