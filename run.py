@@ -73,7 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("convert", help="CARMEN log (or any readable recording) to a ROS bag")
     p.add_argument("input", type=Path, help="recording to read")
     p.add_argument("output", type=Path, help=".bag (ROS1), .mcap or a folder (ROS2)")
-    p.add_argument("--scan-topic", help="scan topic of the input, if a bag")
+    p.add_argument("--scan-topic", help="scan topic of a bag input ('all': every one, 'none': odometry only)")
     p.add_argument("--odom-topic", help="odometry topic of the input, if a bag")
 
     p = sub.add_parser("evaluate", help="map or SLAM metrics (SPEC section 6)")
