@@ -193,3 +193,56 @@ def test_beam_angle_convention_on_corrected_intel(intel_gfs: Recording) -> None:
         assert scores[name] > 1.02 * good, (name, scores[name], good)
     for name in ("one beam late", "one beam early"):
         assert scores[name] > good, (name, scores[name], good)
+
+
+# ------------------------------------------------------------------------- other laser record types
+
+
+def _robotlaser1(ranges: list[float], remissions: list[float], ipc: str) -> str:
+    robot = (1.0, 2.0, 0.5)
+    laser = (1.0 + 0.2 * np.cos(0.5), 2.0 + 0.2 * np.sin(0.5), 0.5)  # 0.2 m ahead of the base
+    fields = [
+        "ROBOTLASER1", "0", "-1.5708", "3.14159", "0.0174533", "50.0", "0.01", "0",
+        str(len(ranges)), *map(str, ranges), str(len(remissions)), *map(str, remissions),
+        *(f"{v:.9f}" for v in laser), *map(str, robot), "0.1", "0.0", "0.5", "0.3", "1.0",
+        ipc, "host", ipc,
+    ]  # fmt: skip
+    return " ".join(fields)
+
+
+def test_robotlaser1_uses_its_own_geometry(tmp_path) -> None:
+    path = tmp_path / "robot.clf"
+    lines = [
+        _robotlaser1([1.0, 2.0, 60.0], [0.5, 0.6], "10.5"),
+        _robotlaser1([1.5, 2.5, 3.5], [], "10.7"),
+        "FLASER 3 1 2 3 0 0 0 0 0 0 10.6 host 10.6",
+    ]
+    path.write_text("\n".join(lines) + "\n")
+    rec = open_dataset(path)
+    assert rec.meta["carmen_laser"] == "ROBOTLASER1"  # the most frequent laser record
+    assert rec.meta["ignored_records"] == {"FLASER": 1}
+    scan = rec.scans[0]
+    np.testing.assert_array_equal(scan.angles_rad, beam_angles_rad(-1.5708, 0.0174533, 3))
+    assert scan.range_max_m == 50.0
+    assert scan.no_return_mask().tolist() == [False, False, True]
+    assert rec.scans[1].ranges_m.tolist() == pytest.approx([1.5, 2.5, 3.5])
+    np.testing.assert_allclose(rec.laser_in_base_xytheta, [0.2, 0.0, 0.0], atol=1e-8)
+    np.testing.assert_allclose(rec.scan_poses.poses_xytheta[0], [1.0, 2.0, 0.5])
+    assert rec.scans.stamps_ns.tolist() == [10_500_000_000, 10_700_000_000]
+    flaser = open_dataset(path, carmen_laser="FLASER")
+    assert len(flaser.scans) == 1 and flaser.scans[0].range_max_m == 80.0
+
+
+def test_rlaser_records(tmp_path) -> None:
+    path = tmp_path / "rear.log"
+    path.write_text(
+        "RLASER 4 1 2 3 4 0 0 3.14159 0 0 0 1.0 host 1.0\n"
+        "FLASER 2 1 2 0 0 0 0 0 0 1.05 host 1.05\n"
+        "RLASER 4 1 2 3 5 0 0 3.14159 0 0 0 1.2 host 1.2\n"
+    )
+    rec = open_dataset(path)
+    assert rec.meta["carmen_laser"] == "RLASER" and rec.scans.sources == ["RLASER"]
+    np.testing.assert_array_equal(rec.scans[1].angles_rad, beam_angles_rad(-np.pi / 2, np.pi / 4, 4))
+    # the rear laser faces backwards: its mounting says so
+    np.testing.assert_allclose(rec.laser_in_base_xytheta, [0.0, 0.0, 3.14159])
+    assert rec.odometry is None
