@@ -133,8 +133,9 @@ def read_carmen(path: str | Path, cfg: InputConfig | None = None) -> Recording:
         laser["ranges"],
         laser["angles"],
         scan_stamps,
-        np.full(n_scans, cfg.carmen_range_min_m),
-        laser["range_max_m"],
+        # limits rounded to float32 as in a sensor_msgs/LaserScan, so they survive a bag round trip
+        np.full(n_scans, cfg.carmen_range_min_m, dtype=np.float32).astype(np.float64),
+        laser["range_max_m"].astype(np.float32).astype(np.float64),
         frame_ids="laser",
         sources=(kind,),
     )

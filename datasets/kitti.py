@@ -176,7 +176,7 @@ class CloudScans(ScanSequence):
         self._angles = [angles] * n
         self.stamps_ns = np.asarray(clouds.stamps_ns, dtype=np.int64).copy()
         self.range_min_m = np.zeros(n)
-        self.range_max_m = np.full(n, cfg.cloud_range_max_m)
+        self.range_max_m = np.full(n, cfg.cloud_range_max_m, dtype=np.float32).astype(np.float64)
         self.frame_ids = [FRAME_ID] * n
         self.source_index = np.zeros(n, dtype=np.int32)
         self.sources = [FRAME_ID]

@@ -49,7 +49,7 @@ def test_intel_clf_counts_and_first_records(intel_clf: Recording) -> None:
 def test_intel_beams_angles_and_no_returns(intel_clf: Recording) -> None:
     scan = intel_clf.scans[100]
     np.testing.assert_array_equal(scan.angles_rad, beam_angles_rad(-np.pi / 2, np.pi / 180, 180))
-    assert scan.range_max_m == 80.0 and scan.range_min_m == 0.05
+    assert scan.range_max_m == 80.0 and scan.range_min_m == np.float32(0.05)  # float32 as in a bag
     ranges, _ = intel_clf.scans.packed()
     # no-return readings are logged as 81.83 m; every real return is far below the 80 m limit
     assert np.unique(ranges[ranges >= 80.0]).tolist() == [np.float32(81.83)]
