@@ -35,14 +35,18 @@ logger timestamps of the scans are kept in ``meta["ipc_stamps_ns"]`` and ``meta[
 monotone in real logs, so the rule is:
 
 - raw logs: the stamps of each record kind (laser, ODOM) may step back from the latest earlier stamp of
-  that kind by at most ``InputConfig.carmen_stamp_jitter_s`` (default 1 s; ``intel.clf`` has 631 scans and
-  602 ODOM records stamped up to 0.90 s ahead of their neighbours). A larger step back (a concatenated or
-  clock-reset log) is an error.
+  that kind by at most ``InputConfig.carmen_stamp_jitter_s`` (default 1 s; ``intel.clf`` steps back 631
+  times among its scans and 602 times among its ODOM records, by up to 0.90 s: it logs arrival times, in
+  bursts). A larger step back (a concatenated or clock-reset log) is an error.
 - corrected logs (:func:`is_corrected_log`): any stamps are accepted (``freiburg-079-corrected.log.gz``
   writes ODOM stamps of 0, 9e-67 and negative values).
 - then, in both cases, the stamps of each kind are made strictly increasing
   (:func:`datasets.stamps.monotone_stamps_ns`: the longest increasing run keeps its stamps, the other
-  records are re-stamped between their neighbours in line order); ``meta["restamped"]`` counts them.
+  records are re-stamped between their neighbours in line order); ``meta["restamped"]`` counts them
+  (intel.clf: 787 of 13,631 scans, 1,250 of 26,915 ODOM records).
+
+To find the scans of a corrected keyframe log in its raw log use :func:`match_scans`, not the nearest
+logger stamp (corrected logs round stamps to 6 significant digits; see there).
 
 In a corrected log the ODOM records are the SLAM's pose estimates, not wheel odometry; they are still
 returned as ``odometry`` (``meta["odometry_is_corrected"]`` says so).
