@@ -66,7 +66,7 @@ def test_intel_stamps_are_line_ordered_and_increasing(intel_clf: Recording) -> N
     assert int(np.sum(np.diff(raw) < 0)) == 631
     changed = stamps != raw
     assert changed.sum() == rec.meta["restamped"]["laser"]
-    assert 631 <= changed.sum() < 0.1 * len(stamps)
+    assert rec.meta["restamped"] == {"laser": 787, "odometry": 1_250}  # figures quoted in the docstring
     # the other 94% keep their exact logged stamps
     np.testing.assert_array_equal(stamps[~changed], raw[~changed])
     # scan_poses share the scan stamps and are the FLASER poses (raw odometry in intel.clf)
