@@ -24,6 +24,21 @@ class InputConfig(BaseModel):
     carmen_laser: Literal["auto", "FLASER", "RLASER", "ROBOTLASER1"] = Field(
         "auto", description="CARMEN laser record type to read; auto takes the most frequent one"
     )
+    carmen_range_max_m: float = Field(
+        80.0,
+        gt=0,
+        description="CARMEN ranges at or beyond this are no returns (SICK LMS: 80 m maximum; no-return "
+        "readings are logged as 81.83 m in intel.clf, 81.91 m in fr079.clf)",
+    )
+    carmen_range_min_m: float = Field(
+        0.05, ge=0, description="CARMEN ranges below this are invalid (0 marks a failed reading in some logs)"
+    )
+    carmen_stamp_jitter_s: float = Field(
+        1.0,
+        ge=0,
+        description="a raw CARMEN log's timestamps may step back by at most this much (intel.clf: 0.90 s); "
+        "a larger step back is an error",
+    )
     cloud_height_band_m: tuple[float, float] = Field(
         (-0.25, 0.25), description="z band (sensor frame, m) of a 3D cloud turned into a 2D scan"
     )

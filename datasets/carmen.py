@@ -1,0 +1,483 @@
+"""Reader of CARMEN logs (``.clf``, ``.log``, either optionally ``.gz`` / ``.bz2``) into a Recording.
+
+Records read (one per line, fields separated by white space; ``#`` lines are comments)::
+
+    FLASER / RLASER  n r1..rn x y theta odom_x odom_y odom_theta ipc_timestamp hostname logger_timestamp
+    ROBOTLASER1      laser_type start_angle fov angular_resolution max_range accuracy remission_mode
+                     n r1..rn m e1..em laser_x laser_y laser_theta robot_x robot_y robot_theta
+                     tv rv forward_safety_dist side_safety_dist turn_axis
+                     ipc_timestamp hostname logger_timestamp
+    ODOM             x y theta tv rv accel ipc_timestamp hostname logger_timestamp
+    PARAM            name value ...            (kept as strings in ``meta["params"]``)
+
+Every other record type (SYNC, NMEA-GGA, TRUEPOS, NEFF, ...) is ignored and counted in
+``meta["ignored_records"]``; ``InputConfig.carmen_laser`` picks the laser record type ("auto": the most
+frequent one present).
+
+Beams. FLASER / RLASER carry no angles: an n-beam scan covers 180 degrees with
+``angle_i = -pi/2 + i * pi / n`` in the laser frame (the convention of the published continuous-map
+reference code; checked on ``intel.gfs.log`` by ``tests/test_carmen.py``). ROBOTLASER1 carries its start
+angle, resolution and maximum range. Ranges ``>= InputConfig.carmen_range_max_m`` (FLASER) or the record's
+own maximum range (ROBOTLASER1) are no returns; ranges are kept as logged.
+
+Poses and frames. The first pose of a laser record is the laser's, the second the robot base's (odometry).
+``scan_poses`` (and ``reference`` for a corrected log) are the **base** poses, and
+``laser_in_base_xytheta`` is the fixed mounting measured from the records (median of the laser pose in the
+base frame), so that ``laser = base (+) laser_in_base``: zero for intel.clf, x = -0.04 m for fr079.clf.
+Corrected logs write one pose twice, so their offset is zero and their poses are the laser's: on
+``freiburg-079-corrected.log.gz`` (whose PARAM robot_frontlaser_offset says -0.04 m) endpoints of nearby
+scans agree best with a zero offset (mean clipped nearest-neighbour distance 0.0706 m at 0, 0.0738 m at
+-0.04 m, 0.0735 m at +0.04 m). The first pose of each record is kept in ``meta["laser_poses_xytheta"]``.
+
+Timestamps. ``stamp_ns`` comes from the ipc timestamp parsed exactly from its decimal text; the raw ipc and
+logger timestamps of the scans are kept in ``meta["ipc_stamps_ns"]`` and ``meta["logger_stamps_ns"]``
+(``meta["odometry_logger_stamps_ns"]`` for ODOM). **Line order is the truth**; timestamps are not always
+monotone in real logs, so the rule is:
+
+- raw logs: the stamps of each record kind (laser, ODOM) may step back from the latest earlier stamp of
+  that kind by at most ``InputConfig.carmen_stamp_jitter_s`` (default 1 s; ``intel.clf`` steps back 631
+  times among its scans and 602 times among its ODOM records, by up to 0.90 s: it logs arrival times, in
+  bursts). A larger step back (a concatenated or clock-reset log) is an error.
+- corrected logs (:func:`is_corrected_log`): any stamps are accepted (``freiburg-079-corrected.log.gz``
+  writes ODOM stamps of 0, 9e-67 and negative values).
+- then, in both cases, the stamps of each kind are made strictly increasing
+  (:func:`datasets.stamps.monotone_stamps_ns`: the longest increasing run keeps its stamps, the other
+  records are re-stamped between their neighbours in line order); ``meta["restamped"]`` counts them
+  (intel.clf: 787 of 13,631 scans, 1,250 of 26,915 ODOM records).
+
+To find the scans of a corrected keyframe log in its raw log use :func:`match_scans`, not the nearest
+logger stamp (corrected logs round stamps to 6 significant digits; see there).
+
+In a corrected log the ODOM records are the SLAM's pose estimates, not wheel odometry; they are still
+returned as ``odometry`` (``meta["odometry_is_corrected"]`` says so).
+"""
+
+from __future__ import annotations
+
+import bz2
+import gzip
+import zlib
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from datasets.config import InputConfig
+from datasets.errors import DatasetError
+from datasets.numtext import NumberParseError, parse_floats, parse_stamps_ns
+from datasets.stamps import NS_PER_S, monotone_stamps_ns, ns_to_decimal
+from datasets.types import Recording, ScanSequence, Trajectory, beam_angles_rad, wrap_angle_rad
+
+LASER_RECORDS = ("FLASER", "RLASER", "ROBOTLASER1")
+_FLASER_FIXED_FIELDS = 11  # name, n, 6 pose values, ipc, host, logger
+_ROBOTLASER_FIXED_FIELDS = 24  # name, 7 settings, n, m, 6 pose values, 5 motion values, ipc, host, logger
+_ODOM_FIELDS = 10
+_GZIP_MAGIC = b"\x1f\x8b"
+_BZIP2_MAGIC = b"BZh"
+
+
+class CarmenError(DatasetError):
+    """A CARMEN log is malformed; the message names the file and, where useful, the line."""
+
+
+def is_corrected_log(path: str | Path) -> bool:
+    """True for a SLAM-corrected log, by name: ``*.gfs.log*`` (GMapping) or ``*corrected*``.
+
+    The poses logged in such a file are the corrected poses and become the recording's ``reference``.
+    """
+    name = Path(path).name.lower()
+    return ".gfs." in name or "corrected" in name
+
+
+def read_carmen(path: str | Path, cfg: InputConfig | None = None) -> Recording:
+    """Read the CARMEN log at ``path`` (see the module docstring for records, frames and the stamp rule).
+
+    Returns a Recording with ``scans`` (N scans), ``odometry`` (ODOM records, or None),
+    ``scan_poses`` (N base poses at the scan stamps), ``reference`` (the same poses for a corrected log,
+    else None), ``laser_in_base_xytheta`` (3,) and ``meta``. Raises a DatasetError subclass with one line
+    naming the file (and the line) on bad input.
+    """
+    cfg = cfg or InputConfig()
+    path = Path(path)
+    lines, rows_by_type = _index_records(path, _load_text(path))
+    counts = {name: len(rows) for name, rows in rows_by_type.items()}
+    kind = _choose_laser(path, counts, cfg.carmen_laser)
+    corrected = is_corrected_log(path)
+    jitter_ns = round(cfg.carmen_stamp_jitter_s * NS_PER_S)
+
+    laser = _parse_laser(path, kind, lines, rows_by_type[kind], cfg)
+    if not corrected:
+        _check_backsteps(path, kind, laser["ipc_ns"], laser["line_numbers"], jitter_ns, cfg)
+    scan_stamps, scan_restamped = monotone_stamps_ns(laser["ipc_ns"])
+
+    odometry = None
+    odom_meta: dict = {}
+    odom_restamped = 0
+    if rows_by_type.get("ODOM"):
+        odom = _parse_odom(path, lines, rows_by_type["ODOM"])
+        if not corrected:
+            _check_backsteps(path, "ODOM", odom["ipc_ns"], odom["line_numbers"], jitter_ns, cfg)
+        odom_stamps, restamped = monotone_stamps_ns(odom["ipc_ns"])
+        odom_restamped = int(restamped.sum())
+        odometry = Trajectory(odom_stamps, odom["poses_xytheta"], frame_id="odom")
+        odom_meta = {
+            "odometry_ipc_stamps_ns": odom["ipc_ns"],
+            "odometry_logger_stamps_ns": odom["logger_ns"],
+            "odometry_line_numbers": odom["line_numbers"],
+        }
+
+    params = _params(lines, rows_by_type.get("PARAM", []))
+    laser_in_base = _laser_in_base(laser["laser_xytheta"], laser["base_xytheta"])
+    scan_poses = Trajectory(scan_stamps, laser["base_xytheta"], frame_id="odom")
+    reference = Trajectory(scan_stamps, laser["base_xytheta"], frame_id="map") if corrected else None
+
+    n_scans = len(laser["ranges"])
+    scans = ScanSequence(
+        laser["ranges"],
+        laser["angles"],
+        scan_stamps,
+        # limits rounded to float32 as in a sensor_msgs/LaserScan, so they survive a bag round trip
+        np.full(n_scans, cfg.carmen_range_min_m, dtype=np.float32).astype(np.float64),
+        laser["range_max_m"].astype(np.float32).astype(np.float64),
+        frame_ids="laser",
+        sources=(kind,),
+    )
+    meta = {
+        "carmen_laser": kind,
+        "record_counts": counts,
+        "ignored_records": {name: c for name, c in counts.items() if name not in (kind, "ODOM", "PARAM")},
+        "corrected": corrected,
+        "params": params,
+        "ipc_stamps_ns": laser["ipc_ns"],
+        "logger_stamps_ns": laser["logger_ns"],
+        "line_numbers": laser["line_numbers"],
+        "laser_poses_xytheta": laser["laser_xytheta"],
+        "restamped": {"laser": int(scan_restamped.sum()), "odometry": odom_restamped},
+        "odometry_is_corrected": corrected and odometry is not None,
+        **odom_meta,
+    }
+    return Recording(
+        source=path,
+        format="carmen",
+        scans=scans,
+        odometry=odometry,
+        scan_poses=scan_poses,
+        reference=reference,
+        laser_in_base_xytheta=laser_in_base,
+        meta=meta,
+    )
+
+
+# ----------------------------------------------------------------------------------------------- file
+
+
+def _load_text(path: Path) -> bytes:
+    """The decompressed bytes of ``path`` (gzip / bzip2 recognised by their magic bytes)."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: no such file or directory") from None
+    except IsADirectoryError:
+        raise DatasetError(f"{path}: is a directory, not a CARMEN log") from None
+    except PermissionError:
+        raise DatasetError(f"{path}: cannot read the file: permission denied") from None
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read the file: {exc.strerror or exc}") from None
+    suffix = path.suffix.lower()
+    if raw.startswith(_GZIP_MAGIC):
+        try:
+            return gzip.decompress(raw)
+        except EOFError:
+            raise CarmenError(
+                f"{path}: truncated or corrupt gzip file (the data ends before its end marker)"
+            ) from None
+        except (OSError, zlib.error):
+            raise CarmenError(f"{path}: corrupt gzip file (bad compressed data or checksum)") from None
+    if raw.startswith(_BZIP2_MAGIC):
+        try:
+            return bz2.decompress(raw)
+        except (EOFError, ValueError):
+            raise CarmenError(
+                f"{path}: truncated or corrupt bzip2 file (the data ends before its end marker)"
+            ) from None
+        except OSError:
+            raise CarmenError(f"{path}: corrupt bzip2 file (bad compressed data)") from None
+    if suffix == ".gz":
+        raise CarmenError(f"{path}: not a gzip file (named .gz but no gzip header)")
+    if suffix == ".bz2":
+        raise CarmenError(f"{path}: not a bzip2 file (named .bz2 but no bzip2 header)")
+    return raw
+
+
+def _index_records(path: Path, data: bytes) -> tuple[list[bytes], dict[str, list[int]]]:
+    """The lines of the log and, per record name, the indices of its lines (line number = index + 1)."""
+    if not data.strip():
+        raise CarmenError(f"{path}: empty file, not a CARMEN log")
+    if b"\x00" in data[:65536]:
+        raise CarmenError(f"{path}: binary data, not a CARMEN log (expected text records such as FLASER)")
+    lines = data.split(b"\n")
+    rows_by_type: dict[bytes, list[int]] = {}
+    for i, line in enumerate(lines):
+        head = line.split(None, 1)
+        if not head or head[0].startswith(b"#"):
+            continue
+        rows = rows_by_type.get(head[0])
+        if rows is None:
+            rows_by_type[head[0]] = [i]
+        else:
+            rows.append(i)
+    return lines, {name.decode("ascii", "replace"): rows for name, rows in rows_by_type.items()}
+
+
+def _choose_laser(path: Path, counts: dict[str, int], wanted: str) -> str:
+    present = {k: counts[k] for k in LASER_RECORDS if counts.get(k)}
+    if not present:
+        raise CarmenError(f"{path}: not a CARMEN log: no FLASER, RLASER or ROBOTLASER1 records")
+    if wanted == "auto":
+        return max(present, key=lambda k: present[k])  # ties: the first of LASER_RECORDS
+    if wanted not in present:
+        found = ", ".join(f"{k} ({c})" for k, c in present.items())
+        raise CarmenError(f"{path}: no {wanted} records (input.carmen_laser); the log has {found}")
+    return wanted
+
+
+# ---------------------------------------------------------------------------------------------- parse
+
+
+def _laser_layout(kind: str, toks: list[bytes]) -> tuple[int, int, int]:
+    """(n beams, m remissions, expected number of fields) of one laser line; ValueError if unreadable."""
+    if kind == "ROBOTLASER1":
+        if len(toks) < 10:
+            raise ValueError(f"ROBOTLASER1 with {len(toks)} fields is too short")
+        n = _count(toks[8], "reading count")
+        if len(toks) < 10 + n:
+            raise ValueError(f"ROBOTLASER1 says {n} readings but has {len(toks)} fields")
+        m = _count(toks[9 + n], "remission count")
+        return n, m, _ROBOTLASER_FIXED_FIELDS + n + m
+    if len(toks) < 2:
+        raise ValueError(f"{kind} without a reading count")
+    n = _count(toks[1], "reading count")
+    return n, 0, _FLASER_FIXED_FIELDS + n
+
+
+def _count(token: bytes, what: str) -> int:
+    text = token.decode("ascii", "replace")
+    try:
+        value = int(text)
+    except ValueError:
+        raise ValueError(f"{what} '{text}' is not an integer") from None
+    if value < 0:
+        raise ValueError(f"negative {what} {value}")
+    return value
+
+
+def _parse_floats(
+    path: Path, kind: str, rows: Sequence[int], pieces: list[bytes], per_row: NDArray
+) -> NDArray:
+    """Numeric fields of many lines at once: ``pieces`` holds each row's fields, ``per_row`` their count."""
+    try:
+        return parse_floats(b" ".join(pieces))
+    except NumberParseError as exc:
+        j = int(np.searchsorted(np.cumsum(per_row), exc.index, side="right"))
+        field = exc.index - int(np.sum(per_row[:j])) + 2  # values start at the record's second field
+        raise CarmenError(
+            f"{path}: line {rows[j] + 1}: {kind} field {field} '{exc.token}' is not a number"
+        ) from None
+
+
+def _check_finite(
+    path: Path, kind: str, lines: list[bytes], rows: Sequence[int], values: NDArray, offsets: NDArray
+) -> None:
+    """CarmenError at the first non-finite value; ``offsets`` (R+1,) are the rows' starts in ``values``."""
+    bad = np.flatnonzero(~np.isfinite(values))
+    if bad.size == 0:
+        return
+    j = int(np.searchsorted(offsets, bad[0], side="right") - 1)
+    field = int(bad[0] - offsets[j]) + 2  # values start at the second field
+    token = lines[rows[j]].split()[field - 1].decode("ascii", "replace")
+    raise CarmenError(f"{path}: line {rows[j] + 1}: {kind} field {field} is not finite ('{token}')")
+
+
+def _stamps(path: Path, kind: str, tokens: list[bytes], rows: Sequence[int], what: str) -> NDArray[np.int64]:
+    try:
+        return parse_stamps_ns(b" ".join(tokens))
+    except NumberParseError as exc:
+        raise CarmenError(f"{path}: line {rows[exc.index] + 1}: {kind} {what} {exc}") from None
+
+
+def _parse_laser(path: Path, kind: str, lines: list[bytes], rows: list[int], cfg: InputConfig) -> dict:
+    """Ranges, angles, poses and stamps of the laser records at ``rows`` (indices into ``lines``)."""
+    n_rows = len(rows)
+    beams = np.empty(n_rows, dtype=np.int64)
+    remissions = np.zeros(n_rows, dtype=np.int64)
+    pieces: list[bytes] = []
+    ipc: list[bytes] = []
+    logger: list[bytes] = []
+    for j, row in enumerate(rows):
+        toks = lines[row].split()
+        try:
+            n, m, expected = _laser_layout(kind, toks)
+        except ValueError as exc:
+            raise CarmenError(f"{path}: line {row + 1}: {exc}") from None
+        if n == 0:
+            raise CarmenError(f"{path}: line {row + 1}: empty scan ({kind} with 0 readings)")
+        if len(toks) != expected:
+            raise CarmenError(
+                f"{path}: line {row + 1}: {kind} says {n} readings but has {len(toks)} fields "
+                f"instead of {expected}"
+            )
+        beams[j], remissions[j] = n, m
+        pieces.append(b" ".join(toks[1:-3]))
+        ipc.append(toks[-3])
+        logger.append(toks[-1])
+    per_row = beams + remissions + (_ROBOTLASER_FIXED_FIELDS - 4 if kind == "ROBOTLASER1" else 7)
+    offsets = np.concatenate([[0], np.cumsum(per_row)])
+    values = _parse_floats(path, kind, rows, pieces, per_row)
+    _check_finite(path, kind, lines, rows, values, offsets)
+
+    starts = offsets[:-1]
+    first_range = starts + (8 if kind == "ROBOTLASER1" else 1)
+    pose_start = first_range + beams + (remissions + 1 if kind == "ROBOTLASER1" else 0)
+    before = np.concatenate([[0], np.cumsum(beams)[:-1]])
+    flat_ranges = values[np.repeat(first_range - before, beams) + np.arange(int(beams.sum()))]
+    negative = np.flatnonzero(flat_ranges < 0)
+    if negative.size:
+        j = int(np.searchsorted(before, negative[0], side="right") - 1)
+        beam = int(negative[0] - before[j])
+        raise CarmenError(
+            f"{path}: line {rows[j] + 1}: negative range {flat_ranges[negative[0]]:g} m "
+            f"(beam {beam} of the {kind} scan)"
+        )
+    ranges = np.split(flat_ranges.astype(np.float32), np.cumsum(beams)[:-1])
+    poses = values[pose_start[:, None] + np.arange(6)]
+
+    if kind == "ROBOTLASER1":
+        start_rad, res_rad, max_m = (values[starts + k] for k in (1, 3, 4))
+        keys = list(zip(start_rad.tolist(), res_rad.tolist(), beams.tolist(), strict=True))
+        range_max = np.where(max_m > 0, max_m, cfg.carmen_range_max_m)
+    else:  # FLASER / RLASER: 180 degrees, angle_i = -pi/2 + i*pi/n
+        keys = [(-np.pi / 2, np.pi / n, n) for n in beams.tolist()]
+        range_max = np.full(n_rows, cfg.carmen_range_max_m)
+    angle_cache: dict[tuple, NDArray[np.float32]] = {}  # scans with equal settings share one array
+    for k in set(keys):
+        angle_cache[k] = beam_angles_rad(*k)
+    angles = [angle_cache[k] for k in keys]
+    return {
+        "ranges": ranges,
+        "angles": angles,
+        "range_max_m": range_max,
+        "laser_xytheta": poses[:, :3].copy(),
+        "base_xytheta": poses[:, 3:].copy(),
+        "ipc_ns": _stamps(path, kind, ipc, rows, "ipc timestamp"),
+        "logger_ns": _stamps(path, kind, logger, rows, "logger timestamp"),
+        "line_numbers": np.asarray(rows, dtype=np.int64) + 1,
+    }
+
+
+def _parse_odom(path: Path, lines: list[bytes], rows: list[int]) -> dict:
+    """Poses and stamps of the ODOM records at ``rows``."""
+    pieces: list[bytes] = []
+    ipc: list[bytes] = []
+    logger: list[bytes] = []
+    for row in rows:
+        toks = lines[row].split()
+        if len(toks) != _ODOM_FIELDS:
+            raise CarmenError(
+                f"{path}: line {row + 1}: ODOM has {len(toks)} fields instead of {_ODOM_FIELDS} "
+                "(x y theta tv rv accel ipc_timestamp hostname logger_timestamp)"
+            )
+        pieces.append(b" ".join(toks[1:7]))
+        ipc.append(toks[7])
+        logger.append(toks[9])
+    values = _parse_floats(path, "ODOM", rows, pieces, np.full(len(rows), 6))
+    _check_finite(path, "ODOM", lines, rows, values, np.arange(len(rows) + 1) * 6)
+    return {
+        "poses_xytheta": values.reshape(-1, 6)[:, :3].copy(),
+        "ipc_ns": _stamps(path, "ODOM", ipc, rows, "ipc timestamp"),
+        "logger_ns": _stamps(path, "ODOM", logger, rows, "logger timestamp"),
+        "line_numbers": np.asarray(rows, dtype=np.int64) + 1,
+    }
+
+
+def _params(lines: list[bytes], rows: list[int]) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for row in rows:
+        toks = lines[row].split()
+        if len(toks) >= 3:
+            out[toks[1].decode("ascii", "replace")] = toks[2].decode("ascii", "replace")
+    return out
+
+
+# ------------------------------------------------------------------------------------- frames, stamps
+
+
+def _laser_in_base(laser_xytheta: NDArray, base_xytheta: NDArray) -> NDArray[np.float64]:
+    """(3,) laser mounting in the base frame: the median laser pose seen from the base pose."""
+    d = laser_xytheta - base_xytheta
+    c, s = np.cos(base_xytheta[:, 2]), np.sin(base_xytheta[:, 2])
+    local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], wrap_angle_rad(d[:, 2])], axis=1)
+    offset = np.median(local, axis=0)
+    offset[np.abs(offset) < 1e-9] = 0.0
+    return offset
+
+
+def _check_backsteps(
+    path: Path, kind: str, stamps_ns: NDArray, line_numbers: NDArray, jitter_ns: int, cfg: InputConfig
+) -> None:
+    """CarmenError when a stamp lies more than the jitter before the latest earlier stamp of its kind."""
+    if stamps_ns.shape[0] < 2:
+        return
+    latest = np.maximum.accumulate(stamps_ns)
+    back = latest[:-1] - stamps_ns[1:]
+    bad = np.flatnonzero(back > jitter_ns)
+    if bad.size == 0:
+        return
+    j = int(bad[0]) + 1
+    k = int(np.argmax(stamps_ns[:j] == latest[j - 1]))
+    raise CarmenError(
+        f"{path}: line {line_numbers[j]}: timestamps go backwards: {kind} at {ns_to_decimal(stamps_ns[j])} s "
+        f"is {back[j - 1] / NS_PER_S:.3f} s before line {line_numbers[k]} "
+        f"(more than input.carmen_stamp_jitter_s = {cfg.carmen_stamp_jitter_s:g} s)"
+    )
+
+
+def match_scans(
+    keyframes: Recording, full: Recording, window_s: float = 0.05, tolerance_m: float = 0.005
+) -> NDArray[np.int64]:
+    """(K,) index into ``full.scans`` of each scan of ``keyframes`` (e.g. intel.gfs.log into intel.clf).
+
+    Matching by logger timestamp alone is ambiguous: corrected logs round stamps to 6 significant digits
+    (10 ms at 2683.77 s) and intel.clf logs scans in bursts 1 ms apart, so the nearest stamp is the wrong
+    scan for 19% of intel.gfs.log. Among the scans whose logger stamp lies within ``window_s``, this takes
+    the one whose ranges agree (largest difference at most ``tolerance_m``); DatasetError if there is none.
+    """
+    if keyframes.scans is None or full.scans is None:
+        raise DatasetError("match_scans: both recordings need scans")
+    k_stamps = keyframes.meta.get("logger_stamps_ns")
+    f_stamps = full.meta.get("logger_stamps_ns")
+    if k_stamps is None or f_stamps is None:
+        raise DatasetError("match_scans: both recordings need meta['logger_stamps_ns'] (CARMEN logs)")
+    order = np.argsort(f_stamps, kind="stable")
+    ordered = f_stamps[order]
+    window_ns = round(window_s * NS_PER_S)
+    lo = np.searchsorted(ordered, k_stamps - window_ns, side="left")
+    hi = np.searchsorted(ordered, k_stamps + window_ns, side="right")
+    out = np.empty(len(k_stamps), dtype=np.int64)
+    for j in range(len(k_stamps)):
+        ranges = keyframes.scans.ranges_m[j]
+        best, best_err = -1, np.inf
+        for i in order[lo[j] : hi[j]]:
+            other = full.scans.ranges_m[i]
+            if other.shape != ranges.shape:
+                continue
+            err = float(np.max(np.abs(other - ranges)))
+            if err < best_err:
+                best, best_err = int(i), err
+        if best < 0 or best_err > tolerance_m:
+            raise DatasetError(
+                f"{keyframes.source}: scan {j} (logger stamp {ns_to_decimal(k_stamps[j])} s) has no scan "
+                f"with the same ranges within {window_s:g} s in {full.source}"
+            )
+        out[j] = best
+    return out

@@ -1,0 +1,127 @@
+"""Timestamps as exact integer nanoseconds: decimal text in and out, and strictly increasing repairs.
+
+Log formats write times as decimal seconds (``976052857.337530``). Parsing them through a float64 loses
+the last digits (a float64 near 1e9 s resolves ~0.1 us), so they are parsed from their text straight to
+integer nanoseconds and written back the same way.
+"""
+
+from __future__ import annotations
+
+from bisect import bisect_left
+from collections.abc import Sequence
+from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
+
+import numpy as np
+from numpy.typing import NDArray
+
+NS_PER_S = 1_000_000_000
+
+
+def decimal_to_ns(text: bytes | str) -> int:
+    """Integer nanoseconds of a decimal number of seconds (``b"12.5"`` -> 12_500_000_000), exactly.
+
+    Digits beyond the ninth decimal are rounded half to even. Accepts a sign and an exponent
+    (``8.97771e-67``). Raises ValueError for anything that is not a finite decimal number.
+    """
+    s = text.decode("ascii", "replace") if isinstance(text, bytes) else text
+    whole, dot, frac = s.partition(".")
+    if s.isascii() and whole.isdigit() and (not dot or (frac.isdigit() and len(frac) <= 9)):
+        return int(whole) * NS_PER_S + (int(frac.ljust(9, "0")) if dot else 0)
+    try:
+        value = Decimal(s)
+    except InvalidOperation:
+        raise ValueError(f"'{s}' is not a decimal number") from None
+    if not value.is_finite():
+        raise ValueError(f"'{s}' is not a finite number")
+    return int(value.scaleb(9).quantize(Decimal(1), rounding=ROUND_HALF_EVEN))
+
+
+class StampParseError(ValueError):
+    """A timestamp text is not a finite decimal number; ``index`` is its position in the input."""
+
+    def __init__(self, index: int, message: str) -> None:
+        super().__init__(message)
+        self.index = index
+
+
+def decimals_to_ns(texts: Sequence[bytes | str]) -> NDArray[np.int64]:
+    """(N,) int64 nanoseconds of decimal second strings; StampParseError gives the first bad index."""
+    out = np.empty(len(texts), dtype=np.int64)
+    for i, t in enumerate(texts):
+        try:
+            out[i] = decimal_to_ns(t)
+        except ValueError as exc:
+            raise StampParseError(i, str(exc)) from None
+        except OverflowError:
+            shown = t.decode("ascii", "replace") if isinstance(t, bytes) else t
+            raise StampParseError(i, f"'{shown}' is out of range for a timestamp") from None
+    return out
+
+
+def ns_to_decimal(stamp_ns: int) -> str:
+    """Decimal seconds with nine decimals, exactly (``12_500_000_000`` -> ``"12.500000000"``)."""
+    sign = "-" if stamp_ns < 0 else ""
+    whole, frac = divmod(abs(int(stamp_ns)), NS_PER_S)
+    return f"{sign}{whole}.{frac:09d}"
+
+
+def longest_increasing_mask(values: NDArray) -> NDArray[np.bool_]:
+    """(N,) True on one longest strictly increasing subsequence of ``values`` (patience sorting, N log N)."""
+    vals = np.asarray(values).tolist()
+    n = len(vals)
+    keep = np.zeros(n, dtype=bool)
+    if n == 0:
+        return keep
+    tails: list = []  # smallest tail value of an increasing run of each length
+    tail_index: list[int] = []
+    previous = [-1] * n
+    for i, v in enumerate(vals):
+        k = bisect_left(tails, v)
+        if k == len(tails):
+            tails.append(v)
+            tail_index.append(i)
+        else:
+            tails[k] = v
+            tail_index[k] = i
+        previous[i] = tail_index[k - 1] if k > 0 else -1
+    i = tail_index[-1]
+    while i >= 0:
+        keep[i] = True
+        i = previous[i]
+    return keep
+
+
+def monotone_stamps_ns(stamps_ns: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """Strictly increasing stamps for records whose order (not their stamps) is the truth.
+
+    Keeps the stamps of one longest strictly increasing subsequence and re-stamps every other record by
+    linear interpolation, in record index, between its kept neighbours (extrapolating with the median
+    step at the ends). Returns ``(stamps_ns (N,) int64, restamped (N,) bool)``; untouched input when it is
+    already strictly increasing.
+    """
+    s = np.asarray(stamps_ns, dtype=np.int64)
+    n = s.shape[0]
+    if n < 2 or np.all(np.diff(s) > 0):
+        return s.copy(), np.zeros(n, dtype=bool)
+    keep = longest_increasing_mask(s)
+    idx = np.arange(n, dtype=np.int64)
+    kept_idx = idx[keep]
+    kept = s[keep]
+    step = int(np.median(np.diff(kept))) if kept.shape[0] > 1 else 1
+    step = max(step, 1)
+    # nearest kept neighbour before / after each record (as positions into kept_idx)
+    after = np.searchsorted(kept_idx, idx, side="left")
+    before = after - 1
+    out = s.copy()
+    lost = ~keep
+    inner = lost & (before >= 0) & (after < kept.shape[0])
+    b, a = before[inner], after[inner]
+    i0, i1 = kept_idx[b], kept_idx[a]
+    out[inner] = kept[b] + (kept[a] - kept[b]) * (idx[inner] - i0) // (i1 - i0)
+    head = lost & (before < 0)
+    out[head] = kept[0] - (kept_idx[0] - idx[head]) * step
+    tail = lost & (after >= kept.shape[0])
+    out[tail] = kept[-1] + (idx[tail] - kept_idx[-1]) * step
+    # guarantee strict increase even where kept neighbours are closer than one ns per record
+    out = idx + np.maximum.accumulate(out - idx)
+    return out, out != s
