@@ -3,7 +3,6 @@ nothing left behind."""
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -138,15 +137,7 @@ def test_convert_recording_all_platforms(tmp_path: Path) -> None:
     assert back.scans.source_index.tolist() == [0, 1, 0, 1, 0, 1]
 
 
-# -- CARMEN -> bag. Needs the CARMEN reader (datasets/carmen.py, another helper's work): this test runs as
-# soon as it is on main; until then it is skipped with the reason below.
-needs_carmen = pytest.mark.skipif(
-    importlib.util.find_spec("datasets.carmen") is None,
-    reason="needs the CARMEN reader datasets/carmen.py (not on main yet)",
-)
-
-
-@needs_carmen
+# -- CARMEN -> bag on the real Intel log.
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["intel.bag", "intel.mcap"])
 def test_carmen_intel_round_trip(tmp_path: Path, name: str) -> None:
