@@ -133,14 +133,16 @@ class GroundTruth:
         return np.stack([gx, gy], axis=-1)
 
     def cell_of(self, points_xy_m: NDArray[np.floating]) -> NDArray[np.int64]:
-        """(N, 2) (row, col) cell indices of (N, 2) world points (may fall outside the raster)."""
+        """(N, 2) (row, col) cell indices of (N, 2) finite world points (may fall outside the raster)."""
         p = np.asarray(points_xy_m, dtype=np.float64)
         rc = np.floor((p - self.origin_xy_m) / self.resolution_m).astype(np.int64)
         return rc[:, ::-1]
 
     def occupied_at(self, points_xy_m: NDArray[np.floating]) -> NDArray[np.bool_]:
-        """(N,) True where the points fall in an occupied cell (False outside the raster)."""
-        rc = self.cell_of(points_xy_m)
+        """(N,) True where the points fall in an occupied cell (False outside the raster or not finite)."""
+        p = np.asarray(points_xy_m, dtype=np.float64)
+        finite = np.isfinite(p).all(axis=1)
+        rc = self.cell_of(np.where(finite[:, None], p, self.origin_xy_m - 1.0))
         h, w = self.occupancy.shape
         inside = (rc[:, 0] >= 0) & (rc[:, 0] < h) & (rc[:, 1] >= 0) & (rc[:, 1] < w)
         out = np.zeros(rc.shape[0], dtype=bool)

@@ -419,10 +419,14 @@ def loop_world(seed: int = 0) -> World:
 
 
 def _wiggle(path: SmoothPath, s: FloatArray, amplitude_m: float, wavelength_m: float) -> FloatArray:
-    """Poses along ``path`` offset sideways by ``a sin(2 pi s / L)`` (no robot drives straight)."""
+    """Poses along ``path`` offset sideways by ``a sin(2 pi s / L)`` (no robot drives straight), faded in
+    over the first metres so that the run starts on the path, heading along it."""
     poses = path.at(s)
-    off = amplitude_m * np.sin(2 * np.pi * s / wavelength_m)
-    slope = amplitude_m * 2 * np.pi / wavelength_m * np.cos(2 * np.pi * s / wavelength_m)
+    k = 2 * np.pi / wavelength_m
+    fade = 1.0 - np.exp(-((s / 4.0) ** 2))
+    dfade = 2.0 * s / 16.0 * np.exp(-((s / 4.0) ** 2))
+    off = amplitude_m * np.sin(k * s) * fade
+    slope = amplitude_m * (k * np.cos(k * s) * fade + np.sin(k * s) * dfade)
     c, sn = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     out = poses.copy()
     out[:, 0] -= sn * off

@@ -56,6 +56,8 @@ class LaserSpec:
     @classmethod
     def sweep(cls, topic: str, num_beams: int, fov_deg: float, **kwargs) -> LaserSpec:
         """Beams evenly spaced over ``fov_deg`` centred on the x axis (both ends included, unless 360 deg)."""
+        if num_beams < 2:
+            raise DatasetError(f"a laser sweep needs at least 2 beams, got {num_beams}")
         fov = np.deg2rad(fov_deg)
         if np.isclose(fov_deg, 360.0):
             inc = 2 * np.pi / num_beams
