@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -180,11 +182,11 @@ def test_ground_truth_round_trip_is_exact_and_byte_stable(tmp_path) -> None:
 
 def test_load_ground_truth_errors_name_the_file(tmp_path) -> None:
     missing = tmp_path / "none.gt.npz"
-    with pytest.raises(DatasetError, match=f"{missing}: no such ground-truth file"):
+    with pytest.raises(DatasetError, match=re.escape(f"{missing}: no such ground-truth file")):
         load_ground_truth(missing)
     bad = tmp_path / "bad.gt.npz"
     bad.write_bytes(b"not a zip")
-    with pytest.raises(DatasetError, match=f"{bad}: not a readable ground-truth .npz"):
+    with pytest.raises(DatasetError, match=re.escape(f"{bad}: not a readable ground-truth .npz")):
         load_ground_truth(bad)
     partial = tmp_path / "partial.gt.npz"
     np.savez(partial, occupancy=np.zeros((2, 2), np.uint8))
