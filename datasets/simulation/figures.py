@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -66,7 +67,15 @@ def plot_run(run: SimulatedRun, path: str | Path, beams_every: int = 1, dpi: int
             ax.plot(h[:, 0], h[:, 1], ".", color=hit_color, ms=1.5, label=f"{platform.laser.topic} returns")
         dense = platform.truth_dense.poses_xytheta
         ax.plot(dense[:, 0], dense[:, 1], "-", color=pose_color, lw=0.8)
-        ax.plot(truth[idx, 0], truth[idx, 1], "o", color=pose_color, ms=2.5, label=f"{platform.name} poses")
+        ax.plot(
+            truth[idx, 0],
+            truth[idx, 1],
+            "o",
+            color=pose_color,
+            ms=2.5,
+            label=f"{platform.name} poses",
+            zorder=4 + len(run.platforms) - i,  # the first (slowest) platform on top
+        )
         if platform.odometry_noise is not None:
             odo = platform.odometry.poses_xytheta
             ax.plot(odo[:, 0], odo[:, 1], "--", color="magenta", lw=1.0, label="wheel odometry")
@@ -89,8 +98,19 @@ def plot_run(run: SimulatedRun, path: str | Path, beams_every: int = 1, dpi: int
     )
     ax.legend(loc="upper right", fontsize=7, markerscale=3, framealpha=0.85)
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi, metadata={"Software": None})
+    buffer = io.BytesIO()
+    fig.savefig(buffer, dpi=dpi, format="png", metadata={"Software": None})
     plt.close(fig)
+    _save_small_png(buffer, path)
+
+
+def _save_small_png(buffer: io.BytesIO, path: str | Path, colors: int = 96) -> None:
+    """Re-encode a PNG with a palette of ``colors`` (figures stay well under 200 KB)."""
+    from PIL import Image
+
+    buffer.seek(0)
+    with Image.open(buffer) as img:
+        img.convert("RGB").quantize(colors=colors, dither=Image.Dither.NONE).save(path, optimize=True)
 
 
 def write_docs_figures(out_dir: str | Path = DOCS_DIR, seed: int = 0) -> list[Path]:

@@ -320,8 +320,8 @@ LOOP_ODOMETRY_NOISE = OdometryNoise(
     rotation_variance_rad2_per_rad=0.02**2,
     rotation_variance_rad2_per_m=0.002**2,
     distance_scale_error=0.01,
-    rotation_scale_error=0.015,
-    yaw_bias_rad_per_m=0.0005,
+    rotation_scale_error=0.01,
+    yaw_bias_rad_per_m=0.0003,
 )
 
 
@@ -444,14 +444,14 @@ def make_loop(seed: int = 0, resolution_m: float = 0.1) -> SimulatedRun:
     duration_s = path.length_m / LOOP_SPEED_MPS
     t_odom = np.arange(int(np.floor(duration_s * LOOP_ODOM_RATE_HZ)) + 1) / LOOP_ODOM_RATE_HZ
     stamps_odom = T0_NS + np.round(t_odom * 1e9).astype(np.int64)
-    truth_dense = _wiggle(path, t_odom * LOOP_SPEED_MPS, 0.25, 17.0)
+    truth_dense = _wiggle(path, t_odom * LOOP_SPEED_MPS, 0.15, 17.0)
     odom = drift_odometry(truth_dense, LOOP_ODOMETRY_NOISE, _rng(seed, _ODOMETRY, 0))
     n_scans = int(np.floor((duration_s - LOOP_SCAN_OFFSET_NS * 1e-9) * LOOP_LASER.rate_hz)) + 1
     t_scan = LOOP_SCAN_OFFSET_NS * 1e-9 + np.arange(n_scans) / LOOP_LASER.rate_hz
     stamps_scan = (
         T0_NS + LOOP_SCAN_OFFSET_NS + np.round(np.arange(n_scans) * 1e9 / LOOP_LASER.rate_hz).astype(np.int64)
     )
-    scan_poses = _wiggle(path, t_scan * LOOP_SPEED_MPS, 0.25, 17.0)
+    scan_poses = _wiggle(path, t_scan * LOOP_SPEED_MPS, 0.15, 17.0)
     robot = Platform(
         "robot",
         LOOP_LASER,
