@@ -72,20 +72,21 @@ def _fill_block(
     street_north: bool,
     street_west: bool,
     street_east: bool,
+    alley_probability: float = 0.0,
 ) -> None:
-    """Fill a city block with buildings: strips across the block, set back by up to 1.5 m from the streets,
-    some separated by narrow alleys that end at a back building (set back by up to 3.5 m)."""
+    """Fill a city block with buildings: strips across the block, set back by up to 3.5 m from the streets,
+    separated with ``alley_probability`` by a narrow alley that ends at a back building."""
     setbacks = np.array([0.0, 0.0, 0.0, 0.5, 1.0, 1.5, 2.5, 3.5])
     xs = [x0 + (rng.uniform(0.0, 1.0) if street_west else 0.0)]
     end = x1 - (rng.uniform(0.0, 1.0) if street_east else 0.0)
-    while end - xs[-1] > 30.0:
-        xs.append(xs[-1] + rng.uniform(7.0, 18.0))
+    while end - xs[-1] > 22.0:
+        xs.append(xs[-1] + rng.uniform(6.0, 16.0))
     xs.append(end)
     alley_side = "south" if street_south else "north"
     for k, (a, c) in enumerate(itertools.pairwise(xs)):
         ys = y0 + (rng.choice(setbacks) if street_south else 0.0)
         yn = y1 - (rng.choice(setbacks) if street_north else 0.0)
-        alley = k > 0 and rng.random() < 0.3 and (street_south or street_north)
+        alley = k > 0 and rng.random() < alley_probability and (street_south or street_north)
         if alley:
             width = rng.uniform(2.5, 4.0)
             depth = min(rng.uniform(8.0, 16.0), 0.6 * (y1 - y0))
@@ -164,7 +165,8 @@ STREET_BOUNDS = (0.0, 0.0, 180.0, 100.0)  # 18,000 m2
 STREET_MAIN_Y = (42.0, 58.0)  # main street, facade to facade
 STREET_SIDE_X = ((30.0, 42.0, "both"), (84.0, 96.0, "south"), (132.0, 144.0, "north"))
 STREET_SIDEWALK_M = (3.0, 2.0)  # main street, side streets
-STREET_ROUTE = ((3.0, 48.6), (138.0, 48.6), (138.0, 96.0))
+# up a side street, east along the main street (right-hand lane), north into another side street
+STREET_ROUTE = ((36.0, 18.0), (36.0, 48.6), (138.0, 48.6), (138.0, 96.0))
 STREET_LASER = LaserSpec.sweep(
     "/scan", 17, 180.0, range_min_m=0.1, range_max_m=34.0, range_variance_m2=1e-4, bearing_variance_rad2=0.0
 )
@@ -212,8 +214,8 @@ def street_world(seed: int = 0) -> World:
 
 
 def make_street(seed: int = 0, resolution_m: float = 0.1) -> SimulatedRun:
-    """Dataset I: 28 known poses along the main street and into a side street, 17 beams over 180 deg
-    centred on the direction of travel, 34 m range, negligible noise (1 cm range std)."""
+    """Dataset I: 28 known poses from a side street along the main street into another side street;
+    17 beams over 180 deg centred on the direction of travel, 34 m range, negligible noise (1 cm std)."""
     world = street_world(seed)
     path = SmoothPath(STREET_ROUTE, corner_radius_m=8.0)
     s = np.linspace(0.0, path.length_m, 28)
@@ -274,7 +276,7 @@ def two_platform_world(seed: int = 0) -> World:
     xcuts = [xmin, *[v for s in TWO_V_STREETS for v in s], xmax]
     for ya, yc in zip(ycuts[0::2], ycuts[1::2], strict=True):
         for xa, xc in zip(xcuts[0::2], xcuts[1::2], strict=True):
-            _fill_block(b, layout, xa, ya, xc, yc, ya > ymin, yc < ymax, xa > xmin, xc < xmax)
+            _fill_block(b, layout, xa, ya, xc, yc, ya > ymin, yc < ymax, xa > xmin, xc < xmax, 0.3)
     walk = 1.5
     for y0, _y1 in TWO_H_STREETS:  # park on the south kerb
         mouths = [(x0 - 4.0, x1 + 4.0) for x0, x1 in TWO_V_STREETS]
