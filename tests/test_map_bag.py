@@ -1,0 +1,70 @@
+"""Maps as ROS messages: OccupancyGrid and GridMap written and read back with the right size, resolution,
+origin, orientation and values."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from datasets.ros.bag import open_bag
+from datasets.ros.maps import Raster, percent_int8, read_map_bag, write_map_bag
+
+T0 = 1_700_000_000_123_456_789
+
+
+def _raster() -> Raster:
+    rng = np.random.default_rng(1)
+    prob = rng.uniform(0, 1, (5, 8)).astype(np.float32)
+    prob[0, 0] = 1.0  # the lower-left cell
+    var = rng.uniform(0, 2, (5, 8)).astype(np.float32)
+    var[0, 1] = np.nan
+    mean = rng.normal(size=(5, 8)).astype(np.float32)
+    return Raster({"probability": prob, "mean": mean, "variance": var}, 0.2, (-1.0, 3.0), "map")
+
+
+def test_percent_int8() -> None:
+    v = percent_int8(np.array([0.0, 0.004, 0.5, 1.0, 2.0, np.nan]), 1.0)
+    assert v.tolist() == [0, 0, 50, 100, 100, -1]
+
+
+@pytest.mark.parametrize("name", ["maps.bag", "maps.mcap"])
+def test_map_bag_round_trip(tmp_path: Path, name: str) -> None:
+    raster = _raster()
+    counts = write_map_bag(tmp_path / name, {"before": raster, "after": raster}, T0, {"after": 4.0})
+    assert counts == {
+        f"/{m}/{k}": 1 for m in ("before", "after") for k in ("occupancy", "variance", "grid_map")
+    }
+    back = read_map_bag(tmp_path / name)
+    occ = back["/before/occupancy"]
+    assert occ.shape == (5, 8) and occ.resolution_m == pytest.approx(0.2) and occ.origin_xy_m == (-1.0, 3.0)
+    np.testing.assert_array_equal(occ.layers["value"], percent_int8(raster.layers["probability"], 1.0))
+    assert occ.layers["value"][0, 0] == 100
+    var = back["/after/variance"].layers["value"]
+    assert var[0, 1] == -1  # NaN -> unknown
+    np.testing.assert_array_equal(var, percent_int8(raster.layers["variance"], 4.0))
+    gm = back["/after/grid_map"]
+    assert gm.shape == (5, 8) and gm.origin_xy_m == pytest.approx((-1.0, 3.0)) and gm.resolution_m == 0.2
+    for layer in ("probability", "mean", "variance"):
+        np.testing.assert_array_equal(gm.layers[layer], raster.layers[layer])
+
+
+def test_grid_map_uses_grid_map_index_convention(tmp_path: Path) -> None:
+    """GridMap cell (0, 0) is the (max x, max y) corner and storage is column-major."""
+    raster = _raster()
+    write_map_bag(tmp_path / "m.bag", {"m": raster}, T0)
+    with open_bag(tmp_path / "m.bag", "ros1") as bag:
+        (_, _, msg), *_ = list(bag.messages(["/m/grid_map"]))
+    prob = msg.data[list(msg.layers).index("probability")]
+    assert [d.label for d in prob.layout.dim] == ["column_index", "row_index"]
+    rows_x = prob.layout.dim[1].size  # grid_map rows run along x
+    cols_y = prob.layout.dim[0].size
+    assert (rows_x, cols_y) == (8, 5)
+    data = np.asarray(prob.data)
+    # M(i=0, j=0) is raster[H-1, W-1] (max y, max x); M(rows-1, cols-1) is raster[0, 0] (min x, min y)
+    assert data[0] == raster.layers["probability"][-1, -1]
+    assert data[(cols_y - 1) * rows_x + (rows_x - 1)] == raster.layers["probability"][0, 0] == 1.0
+    # the pose is the map centre
+    assert msg.info.pose.position.x == pytest.approx(-1.0 + 8 * 0.2 / 2)
+    assert msg.info.pose.position.y == pytest.approx(3.0 + 5 * 0.2 / 2)
