@@ -58,6 +58,20 @@ def chain(start: FloatArray, increments: FloatArray) -> FloatArray:
     return out
 
 
+def logmap(d: FloatArray) -> FloatArray:
+    """(..., 3) SE(2) logarithm ``(v_x, v_y, omega)`` of poses (GTSAM ``Pose2.Logmap``)."""
+    d = np.asarray(d, dtype=np.float64)
+    w = wrap(d[..., 2])
+    half = 0.5 * w
+    small = np.abs(w) < 1e-10
+    # V^-1 = (w/2) [[cot(w/2), 1], [-1, cot(w/2)]] ... written with a safe limit at w -> 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        k = np.where(small, 1.0, half / np.tan(np.where(small, 1.0, half)))
+    x = k * d[..., 0] + half * d[..., 1]
+    y = -half * d[..., 0] + k * d[..., 1]
+    return np.stack([x, y, w], axis=-1)
+
+
 def transform_points(pose: FloatArray, points_xy: FloatArray) -> FloatArray:
     """(P, 2) body-frame points mapped to the world by one pose (3,)."""
     c, s = np.cos(pose[2]), np.sin(pose[2])

@@ -15,18 +15,44 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
+from slam import geometry as se2
+
 FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
 class Edge:
-    """One factor of the graph, for export (g2o) and inspection."""
+    """One factor of the graph, for export (g2o) and inspection.
+
+    ``cov`` (3, 3) is the covariance in the child frame of the measurement (GTSAM ``BetweenFactor`` and
+    g2o ``EDGE_SE2`` convention); for a prior, of the pose itself. ``robust`` names the loss (``"none"``,
+    ``"cauchy"``, ``"huber"``, ``"dcs"``) and ``robust_width`` its width in whitened units.
+    """
 
     kind: str  # "prior", "odometry" or "loop"
     key_from: int
     key_to: int
     measurement_xytheta: FloatArray
-    information: FloatArray  # (3, 3), child frame of the measurement (g2o EDGE_SE2 convention)
+    cov: FloatArray
+    robust: str = "none"
+    robust_width: float = 1.0
+
+    @property
+    def information(self) -> FloatArray:
+        """(3, 3) inverse of ``cov``."""
+        return np.linalg.inv(self.cov)
+
+    def scaled(self, factor: float) -> Edge:
+        """The same edge with its covariance multiplied by ``factor``."""
+        return Edge(
+            self.kind,
+            self.key_from,
+            self.key_to,
+            self.measurement_xytheta,
+            self.cov * factor,
+            self.robust,
+            self.robust_width,
+        )
 
 
 def _robust(kind: str, width: float, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
@@ -68,8 +94,9 @@ class PoseGraph:
         return key
 
     def add_prior(self, key: int, pose_xytheta: FloatArray, cov: FloatArray) -> None:
+        cov = np.asarray(cov, dtype=np.float64)
         f = gtsam.PriorFactorPose2(key, _pose(pose_xytheta), gtsam.noiseModel.Gaussian.Covariance(cov))
-        self._add(f, Edge("prior", key, key, np.asarray(pose_xytheta, float), np.linalg.inv(cov)))
+        self._add(f, Edge("prior", key, key, np.asarray(pose_xytheta, float), cov))
 
     def add_between(
         self,
@@ -82,9 +109,27 @@ class PoseGraph:
         robust_width: float = 1.0,
     ) -> None:
         """A relative-pose factor ``between(x_from, x_to) = relative`` with child-frame covariance ``cov``."""
-        noise = _robust(robust, robust_width, gtsam.noiseModel.Gaussian.Covariance(np.asarray(cov, float)))
+        cov = np.asarray(cov, dtype=np.float64)
+        noise = _robust(robust, robust_width, gtsam.noiseModel.Gaussian.Covariance(cov))
         f = gtsam.BetweenFactorPose2(key_from, key_to, _pose(relative_xytheta), noise)
-        self._add(f, Edge(kind, key_from, key_to, np.asarray(relative_xytheta, float), np.linalg.inv(cov)))
+        edge = Edge(kind, key_from, key_to, np.asarray(relative_xytheta, float), cov, robust, robust_width)
+        self._add(f, edge)
+
+    @classmethod
+    def from_edges(cls, edges: list[Edge], initial_xytheta: FloatArray) -> PoseGraph:
+        """A graph holding ``edges`` with ``initial_xytheta`` (K, 3) as its estimate (for batch solving)."""
+        g = cls()
+        for p in np.asarray(initial_xytheta, dtype=np.float64):
+            g.add_pose(p)
+        for e in edges:
+            if e.kind == "prior":
+                g.add_prior(e.key_from, e.measurement_xytheta, e.cov)
+            else:
+                g.add_between(
+                    e.kind, e.key_from, e.key_to, e.measurement_xytheta, e.cov, e.robust, e.robust_width
+                )
+        g._estimate = g._new_values
+        return g
 
     def _add(self, factor: gtsam.NonlinearFactor, edge: Edge) -> None:
         self._new_factors.add(factor)
@@ -116,6 +161,13 @@ class PoseGraph:
         """(3, 3) iSAM2 marginal covariance of one keyframe, body frame."""
         return np.asarray(self._isam.marginalCovariance(key))
 
+    def set_estimate(self, poses_xytheta: FloatArray) -> None:
+        """Replace the current estimate (K, 3) (the batch optimiser starts from it)."""
+        values = gtsam.Values()
+        for k, p in enumerate(np.asarray(poses_xytheta, dtype=np.float64)):
+            values.insert(k, _pose(p))
+        self._estimate = values
+
     def optimize_batch(self, max_iterations: int = 100) -> FloatArray:
         """Levenberg-Marquardt on the whole graph from the current estimate; returns (K, 3) poses."""
         if self._estimate is None:
@@ -139,11 +191,26 @@ class PoseGraph:
 
 
 def _values_to_array(values: gtsam.Values, n: int) -> FloatArray:
-    out = np.empty((n, 3))
-    for k in range(n):
-        p = values.atPose2(k)
-        out[k] = (p.x(), p.y(), p.theta())
+    out = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
+    if out.shape[0] != n:
+        raise ValueError(f"pose graph: {out.shape[0]} poses in the estimate, expected {n}")
     return out
+
+
+def edge_errors2(poses_xytheta: FloatArray, edges: list[Edge]) -> FloatArray:
+    """(E,) squared whitened errors ``r^T cov^-1 r`` of every edge at ``poses_xytheta`` (K, 3), without the
+    robust loss; ``r`` is GTSAM's error (``Logmap(z^-1 * between(x_from, x_to))``, or of the prior)."""
+    if not edges:
+        return np.zeros(0)
+    p = np.asarray(poses_xytheta, dtype=np.float64)
+    i = np.array([e.key_from for e in edges])
+    j = np.array([e.key_to for e in edges])
+    z = np.stack([e.measurement_xytheta for e in edges])
+    info = np.linalg.inv(np.stack([e.cov for e in edges]))
+    prior = np.array([e.kind == "prior" for e in edges])
+    h = np.where(prior[:, None], p[i], se2.between(p[i], p[j]))
+    r = se2.logmap(se2.between(z, h))
+    return np.einsum("ni,nij,nj->n", r, info, r)
 
 
 def chain_graph_marginals(

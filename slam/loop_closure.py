@@ -11,9 +11,9 @@ which two keyframes still see the same place). The nearest candidates are matche
 - a correlative search over a window of ``window_sigmas`` standard deviations of the predicted relative
   pose (coarse-to-fine when wide), then point-to-line Gauss-Newton (no prior);
 - verification: mean correlative score, fraction of query points within ``inlier_m`` of the target after
-  refinement (the overlap gate), residual RMS, smallest eigenvalue of the alignment information (rejects
-  corridors, where the match slides), and the Mahalanobis distance of the found relative pose from the
-  prediction.
+  refinement (the overlap gate), residual RMS, the ratio of the smallest to the largest eigenvalue of the
+  translational alignment information (rejects corridors, where the match slides along the axis), and the
+  Mahalanobis distance of the found relative pose from the prediction.
 
 An accepted closure enters the graph with the alignment covariance (scaled like the odometry) and a robust
 loss, so that a false closure that passed the gates is down-weighted rather than obeyed.
@@ -60,6 +60,7 @@ class LoopClosure:
     reason: str
     window_xy_m: float = 0.0
     window_theta_rad: float = 0.0
+    consistent: bool = True  # counted as an inlier by the final variance-factor estimate
 
 
 def voxel_thin(points_xy: FloatArray, voxel_m: float) -> NDArray[np.int64]:
@@ -82,14 +83,12 @@ class LoopCloser:
         keyframe_scans: NDArray[np.int64],
         cfg: LoopClosureConfig,
         odo_cfg: OdometryConfig,
-        point_sigma_m: float,
         cov_scale: float,
     ) -> None:
         self.odo = odometry
         self.kf = np.asarray(keyframe_scans, dtype=np.int64)
         self.cfg = cfg
         self.odo_cfg = odo_cfg
-        self.point_sigma_m = point_sigma_m
         self.cov_scale = cov_scale
         poses = odometry.poses_xytheta
         steps = np.hypot(*np.diff(poses[:, :2], axis=0).T) if len(poses) > 1 else np.zeros(0)
@@ -245,7 +244,7 @@ class LoopCloser:
             found.pose_xytheta,
             max_dist_m=self.odo_cfg.max_correspondence_m,
             kernel_m=self.odo_cfg.kernel_m,
-            point_sigma_m=self.point_sigma_m,
+            point_sigma_m=self.odo_cfg.point_sigma_m,
         )
         pose = al.pose_xytheta
         fit = fitness(grid, pts, pose, cfg.inlier_m)
@@ -255,15 +254,18 @@ class LoopCloser:
             d2 = float(e @ np.linalg.solve(cov_rel, e))
         except np.linalg.LinAlgError:
             d2 = math.inf
-        info_w = al.hessian / self.point_sigma_m**2
-        min_eig = float(np.linalg.eigvalsh(info_w[:2, :2]).min()) if al.inliers >= 3 else 0.0
+        oc = self.odo_cfg
+        sigma = max(al.rms_m, oc.min_point_sigma_m) if oc.sigma_from_residuals else oc.point_sigma_m
+        info_w = al.hessian / sigma**2
+        eig = np.linalg.eigvalsh(al.hessian[:2, :2]) if al.inliers >= 3 else np.zeros(2)
+        ratio = float(eig[0] / eig[1]) if eig[1] > 0 else 0.0
         if found.score < cfg.min_score:
             return reject("low score", pose, found.score, fit, al.rms_m, d2)
         if fit < cfg.min_inlier_fraction:
             return reject("low overlap", pose, found.score, fit, al.rms_m, d2)
         if al.rms_m > cfg.max_rms_m:
             return reject("high residual", pose, found.score, fit, al.rms_m, d2)
-        if min_eig < cfg.min_eigen_information:
+        if ratio < cfg.min_eigen_ratio:
             return reject("degenerate", pose, found.score, fit, al.rms_m, d2)
         if d2 > cfg.consistency_chi2:
             return reject("inconsistent", pose, found.score, fit, al.rms_m, d2)

@@ -61,6 +61,7 @@ class OdometryResult:
       last registered scan);
     - ``status`` (N,) int8: :data:`FIRST`, :data:`MATCHED`, :data:`FALLBACK`, :data:`TOO_FEW_POINTS`;
     - ``inlier_fraction`` (N,): fraction of the scan's points matched to the submap;
+    - ``rms_m`` (N,): robust RMS of the point-to-line residuals at the solution (NaN if not registered);
     - ``points_base`` (N,) list of (P_i, 2) base-frame points used (for loop closure);
     - ``timings_s``: wall time per sub-stage.
     """
@@ -69,6 +70,7 @@ class OdometryResult:
     cov_xytheta: FloatArray
     status: NDArray[np.int8]
     inlier_fraction: FloatArray
+    rms_m: FloatArray
     points_base: list[FloatArray]
     timings_s: dict[str, float] = field(default_factory=dict)
 
@@ -208,6 +210,7 @@ def run_odometry(
     covs = np.zeros((n, 3, 3))
     status = np.zeros(n, dtype=np.int8)
     inliers = np.zeros(n)
+    rms = np.full(n, np.nan)
     submaps = _Submaps(cfg)
     kiss = _KissRegistration(cfg) if cfg.matcher == "kiss_icp" else None
     t_match = 0.0
@@ -221,7 +224,6 @@ def run_odometry(
         wheel_inc = None
     last_inc = np.zeros(3)
     last_insert: FloatArray | None = None
-    inv_s2 = 1.0 / cfg.point_sigma_m**2
     chunk = max(1, n // 200)
     bar_ctx = progress.stage("odometry", total=n) if progress is not None else None
     bar = bar_ctx.__enter__() if bar_ctx is not None else None
@@ -268,9 +270,15 @@ def run_odometry(
                     )
                     t_match += time.perf_counter() - t0
                     inliers[i] = frac
+                    rms[i] = al.rms_m
                 if accepted:
                     poses[i] = pose
-                    covs[i] = np.linalg.inv(al.hessian * inv_s2 + prior_info)
+                    sigma = (
+                        max(al.rms_m, cfg.min_point_sigma_m)
+                        if cfg.sigma_from_residuals
+                        else cfg.point_sigma_m
+                    )
+                    covs[i] = np.linalg.inv(al.hessian / sigma**2 + prior_info)
                     status[i] = MATCHED
                 else:
                     poses[i] = pred
@@ -305,4 +313,4 @@ def run_odometry(
         if bar_ctx is not None:
             bar_ctx.__exit__(None, None, None)
     timings = {"odometry_match_s": t_match, "odometry_insert_s": t_insert, "odometry_normals_s": t_normals}
-    return OdometryResult(poses, covs, status, inliers, points_base, timings)
+    return OdometryResult(poses, covs, status, inliers, rms, points_base, timings)

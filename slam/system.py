@@ -13,16 +13,17 @@ composed with its odometry offset, and its covariance adds the offset's uncertai
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from datasets.types import ScanSequence, Trajectory
 from slam import geometry as se2
-from slam.config import SlamConfig
-from slam.graph import Edge, PoseGraph
+from slam.config import GraphConfig, SlamConfig
+from slam.graph import Edge, PoseGraph, edge_errors2
 from slam.keyframes import keyframe_of_scan, relative_cov_body, select_keyframes
 from slam.loop_closure import LoopCloser, LoopClosure
 from slam.odometry import ProgressLike, run_odometry, scan_points_base
@@ -40,7 +41,9 @@ class SlamResult:
     Per keyframe: ``keyframe_scans`` (K,) scan indices, ``keyframe_stamps_ns`` (K,),
     ``keyframe_cov_before`` / ``keyframe_cov_after`` (K, 3, 3) world-frame marginals.
     ``loop_closures`` / ``rejected_loop_closures``: the verified and the refused attempts.
-    ``graph_vertices_xytheta`` (K, 3) and ``graph_edges``: the optimised pose graph (g2o export).
+    ``graph_vertices_xytheta`` (K, 3) and ``graph_edges``: the optimised pose graph (g2o export), whose
+    factor covariances include ``variance_factor``, the a-posteriori variance factor of the adjustment
+    (every factor covariance, and so every marginal, is multiplied by it; 1 when not estimated).
     ``timings_s``: wall time per sub-stage.
     """
 
@@ -58,6 +61,7 @@ class SlamResult:
     rejected_loop_closures: tuple[LoopClosure, ...]
     graph_vertices_xytheta: FloatArray
     graph_edges: tuple[Edge, ...]
+    variance_factor: float = 1.0
     timings_s: dict[str, float] = field(default_factory=dict)
 
     def trajectory(self, which: str = "after") -> Trajectory:
@@ -150,7 +154,6 @@ def run_slam(
         + floor
     )
     cov0 = np.diag([gc.prior_sigma_xy_m**2, gc.prior_sigma_xy_m**2, gc.prior_sigma_theta_rad**2])
-    kf_cov_before_body = se2.propagate_chain_cov_body(rel, fac_cov, cov0)
 
     # incremental graph with loop-closure search after every keyframe
     t0 = time.perf_counter()
@@ -161,12 +164,14 @@ def run_slam(
     graph.update()
     est = np.zeros((k_count, 3))
     est[0] = poses[kf[0]]
-    cov_w = np.zeros((k_count, 3, 3))
+    cov_w = np.zeros((k_count, 3, 3))  # world-frame marginals (unscaled) when each keyframe was added
     cov_w[0] = cov0
-    closer = LoopCloser(odo, kf, cfg.loop_closure, oc, oc.point_sigma_m, gc.loop_cov_scale)
+    closer = LoopCloser(odo, kf, cfg.loop_closure, oc, gc.loop_cov_scale)
     lc = cfg.loop_closure
     accepted: list[LoopClosure] = []
     rejected: list[LoopClosure] = []
+    scale = 1.0  # running a-posteriori variance factor
+    last_closure_path_m = -math.inf
     with _stage(progress, "loop closure", k_count) as bar:
         for k in range(1, k_count):
             graph.add_pose(se2.compose(est[k - 1], rel[k - 1]))
@@ -174,14 +179,16 @@ def run_slam(
             graph.update()
             est[k] = graph.estimate_of(k)
             cov_w[k] = se2.rotate_cov_to_world(est[k], graph.marginal_body(k))
-            if lc.enabled:
+            spaced = closer.path_m[kf[k]] - last_closure_path_m >= lc.closure_spacing_m
+            if lc.enabled and spaced:
                 ts = time.perf_counter()
                 found = []
                 query = None
-                for j, _d2 in closer.candidates(k, est, cov_w):
+                gate_scale = max(scale, 1.0)
+                for j, _d2 in closer.candidates(k, est, cov_w * gate_scale):
                     if query is None:
                         query = closer.query_points(k)
-                    closure = closer.match(k, j, est, cov_w[k] + cov_w[j], query)
+                    closure = closer.match(k, j, est, (cov_w[k] + cov_w[j]) * gate_scale, query)
                     (found if closure.accepted else rejected).append(closure)
                     if len(found) >= lc.max_accepted_per_keyframe:
                         break
@@ -194,27 +201,51 @@ def run_slam(
                         closure.relative_xytheta,
                         np.linalg.inv(closure.information),
                         robust=lc.robust_kernel,
-                        robust_width=lc.robust_kernel_width,
+                        robust_width=lc.robust_kernel_width * math.sqrt(max(scale, 1.0)),
                     )
                 if found:
+                    last_closure_path_m = closer.path_m[kf[k]]
                     accepted.extend(found)
                     graph.update(extra_iterations=1)
                     est[: k + 1] = graph.estimate()
                     cov_w[k] = se2.rotate_cov_to_world(est[k], graph.marginal_body(k))
+                    if gc.estimate_variance_factor:
+                        scale = variance_factor(est[: k + 1], graph.edges, scale, gc)[0]
             bar.advance()
     timings["loop_search_s"] = t_search
     timings["graph_incremental_s"] = time.perf_counter() - t0 - t_search
 
+    # batch: re-weight every factor by the a-posteriori variance factor and solve again until it settles
     t0 = time.perf_counter()
-    if gc.final_optimizer == "levenberg_marquardt":
-        est = graph.optimize_batch(gc.max_iterations)
-    else:
-        est = graph.estimate()
+    est = graph.estimate()
+    edges = list(graph.edges)
+    final = graph
+    scale = 1.0
+    inliers = np.ones(len(edges), dtype=bool)
+    for _ in range(gc.variance_factor_iterations if gc.estimate_variance_factor else 1):
+        if gc.estimate_variance_factor:
+            new_scale, inliers = variance_factor(est, edges, scale, gc)
+        else:
+            new_scale = 1.0
+        final = PoseGraph.from_edges([e if e.kind == "prior" else e.scaled(new_scale) for e in edges], est)
+        if gc.final_optimizer == "levenberg_marquardt":
+            est = final.optimize_batch(gc.max_iterations)
+        converged = abs(new_scale - scale) <= 0.02 * scale
+        scale = new_scale
+        if converged:
+            break
     timings["graph_batch_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     with _stage(progress, "marginals", None):
-        kf_cov_after_body = graph.marginals_body()
+        kf_cov_after_body = final.marginals_body()
     timings["marginals_s"] = time.perf_counter() - t0
+    kf_cov_before_body = se2.propagate_chain_cov_body(rel, fac_cov * scale, cov0)
+    loop_edges = [e for e in edges if e.kind == "loop"]
+    loop_inlier = inliers[[i for i, e in enumerate(edges) if e.kind == "loop"]] if loop_edges else []
+    accepted = [
+        replace(c, information=c.information / scale, consistent=bool(ok))
+        for c, ok in zip(accepted, loop_inlier, strict=True)
+    ]
 
     # every scan: its keyframe's pose and covariance composed with the odometry offset
     t0 = time.perf_counter()
@@ -222,7 +253,7 @@ def run_slam(
     anchor = kf[owner]
     offset = se2.between(poses[anchor], poses)
     off_cov = relative_cov_body(
-        poses[anchor], odo.cov_xytheta[anchor], poses, odo.cov_xytheta, gc.odometry_cov_scale
+        poses[anchor], odo.cov_xytheta[anchor], poses, odo.cov_xytheta, gc.odometry_cov_scale * scale
     )
     off_cov[anchor == np.arange(n)] = 0.0
     poses_after = se2.compose(est[owner], offset)
@@ -262,9 +293,38 @@ def run_slam(
         loop_closures=tuple(accepted),
         rejected_loop_closures=tuple(rejected),
         graph_vertices_xytheta=est,
-        graph_edges=tuple(graph.edges),
+        graph_edges=tuple(final.edges),
+        variance_factor=scale,
         timings_s=timings,
     )
+
+
+def variance_factor(
+    poses_xytheta: FloatArray, edges: list[Edge], current: float, cfg: GraphConfig
+) -> tuple[float, NDArray[np.bool_]]:
+    """A-posteriori variance factor of the graph adjustment, and the loop closures counted as inliers.
+
+    ``s = sum(r_i^T S_i^-1 r_i) / (m - n)`` over the odometry factors and the loop closures whose whitened
+    error is below ``variance_factor_gate_chi2 * s`` (iterated), with ``S_i`` the factor covariances as
+    added and ``m - n = 3 * (inlier loop closures)`` the redundancy of a chain plus loops. If every
+    covariance is right up to one common factor, ``s`` estimates that factor (classical least-squares
+    adjustment). Returns ``(current, all-True)`` when fewer than ``variance_factor_min_loops`` loops agree.
+    """
+    e2 = edge_errors2(poses_xytheta, edges)
+    loops = np.array([e.kind == "loop" for e in edges])
+    s = max(current, 1e-12)
+    inl = np.ones(len(edges), dtype=bool)
+    for _ in range(10):
+        inl = ~loops | (e2 <= cfg.variance_factor_gate_chi2 * s)
+        n_loops = int(np.sum(inl & loops))
+        if n_loops < cfg.variance_factor_min_loops:
+            return current, np.ones(len(edges), dtype=bool)
+        s_new = float(np.sum(e2[inl])) / (3.0 * n_loops)
+        if abs(s_new - s) <= 1e-3 * s:
+            s = s_new
+            break
+        s = s_new
+    return max(s, cfg.variance_factor_min), inl
 
 
 def _sym(c: FloatArray) -> FloatArray:
