@@ -81,6 +81,12 @@ class LoopClosureConfig(BaseModel):
     overlap_radius_m: float = Field(
         2.0, ge=0, description="keyframes this far apart can still see each other"
     )
+    search_cov_inflation: float = Field(
+        10.0,
+        ge=1,
+        description="the candidate gate and search window use the marginals times this "
+        "(a generous search; verification decides)",
+    )
     gate_chi2: float = Field(9.21, gt=0, description="Mahalanobis gate of candidates (chi2 2 dof, 99%)")
     max_candidates: int = Field(3, ge=1, le=50, description="candidates matched per keyframe, nearest first")
     max_accepted_per_keyframe: int = Field(1, ge=1, le=50, description="stop after this many accepted")
@@ -97,12 +103,22 @@ class LoopClosureConfig(BaseModel):
     coarse_step_rad: float = Field(0.0175, gt=0, description="coarse search rotation step")
     query_voxel_m: float = Field(0.1, gt=0, description="query points are thinned to one per voxel")
     min_score: float = Field(0.3, ge=0, le=1, description="least mean correlative score")
-    min_inlier_fraction: float = Field(
-        0.55,
+    min_hit_fraction: float = Field(
+        0.25,
         ge=0,
         le=1,
-        description="least fraction of query points within "
-        "inlier_m of the target after refinement (overlap gate)",
+        description="least fraction of query points within inlier_m of a target point after refinement "
+        "(the overlap gate)",
+    )
+    max_conflict_ratio: float = Field(
+        0.1,
+        ge=0,
+        le=1,
+        description="largest fraction of the query points known to the target that lie in space the "
+        "target's beams saw free (the free-space gate)",
+    )
+    free_space_margin_m: float = Field(
+        0.15, ge=0, description="beams mark free space up to this short of the hit"
     )
     inlier_m: float = Field(0.1, gt=0, description="inlier distance of the overlap gate")
     max_rms_m: float = Field(0.05, gt=0, description="largest point-to-line residual RMS")

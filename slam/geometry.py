@@ -79,6 +79,14 @@ def transform_points(pose: FloatArray, points_xy: FloatArray) -> FloatArray:
     return points_xy @ rot.T + pose[:2]
 
 
+def transform_points_each(poses_xytheta: FloatArray, point_xy: FloatArray) -> FloatArray:
+    """(N, 2) one body-frame point (2,) mapped to the world by each of (N, 3) poses."""
+    p = np.asarray(poses_xytheta, dtype=np.float64)
+    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
+    x, y = float(point_xy[0]), float(point_xy[1])
+    return np.stack([p[:, 0] + c * x - s * y, p[:, 1] + s * x + c * y], axis=1)
+
+
 def rot3(theta_rad: NDArray | float) -> FloatArray:
     """(..., 3, 3) ``blockdiag(R(theta), 1)``: maps body-frame (x, y, theta) vectors to the world frame."""
     th = np.asarray(theta_rad, dtype=np.float64)

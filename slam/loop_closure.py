@@ -10,10 +10,13 @@ which two keyframes still see the same place). The nearest candidates are matche
 - the target is the map of the scans within ``target_keyframes`` keyframes of ``j`` (in ``j``'s frame);
 - a correlative search over a window of ``window_sigmas`` standard deviations of the predicted relative
   pose (coarse-to-fine when wide), then point-to-line Gauss-Newton (no prior);
-- verification: mean correlative score, fraction of query points within ``inlier_m`` of the target after
-  refinement (the overlap gate), residual RMS, the ratio of the smallest to the largest eigenvalue of the
-  translational alignment information (rejects corridors, where the match slides along the axis), and the
-  Mahalanobis distance of the found relative pose from the prediction.
+- verification: the mean correlative score; the overlap gate: the fraction of query points within
+  ``inlier_m`` of a target point after refinement (*hits*); the free-space gate: among the query points
+  that fall where the target knows something, the fraction lying in space its beams saw free (*conflicts*:
+  a wrong alignment puts points inside rooms and corridors, a right one with partial overlap does not);
+  the residual RMS; the ratio of the smallest to the largest eigenvalue of the translational alignment
+  information (rejects corridors, where the match slides along the axis); the Mahalanobis distance of the
+  found relative pose from the prediction.
 
 An accepted closure enters the graph with the alignment covariance (scaled like the odometry) and a robust
 loss, so that a false closure that passed the gates is down-weighted rather than obeyed.
@@ -31,7 +34,14 @@ from numpy.typing import NDArray
 from slam import geometry as se2
 from slam.config import LoopClosureConfig, OdometryConfig
 from slam.odometry import FIRST, MATCHED, OdometryResult
-from slam.scan_matching import PointGrid, correlative_search, fitness, refine_point_to_line, scan_normals
+from slam.scan_matching import (
+    PointGrid,
+    correlative_search,
+    mark_free_space,
+    overlap,
+    refine_point_to_line,
+    scan_normals,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -84,8 +94,11 @@ class LoopCloser:
         cfg: LoopClosureConfig,
         odo_cfg: OdometryConfig,
         cov_scale: float,
+        laser_in_base_xytheta: FloatArray | None = None,
     ) -> None:
         self.odo = odometry
+        mount = np.zeros(3) if laser_in_base_xytheta is None else np.asarray(laser_in_base_xytheta, float)
+        self.laser_origin_base = mount[:2].copy()
         self.kf = np.asarray(keyframe_scans, dtype=np.int64)
         self.cfg = cfg
         self.odo_cfg = odo_cfg
@@ -116,26 +129,26 @@ class LoopCloser:
         return scans[self._usable[scans]]
 
     def _points_in_frame(self, anchor_scan: int, scans: NDArray[np.int64], normals: bool):
-        """Points (and normals) of ``scans`` in the frame of ``anchor_scan`` through the odometry."""
+        """Points, normals (or None) and beam origins of ``scans`` in the frame of ``anchor_scan`` through
+        the odometry, each (P, 2)."""
         if len(scans) == 0:
-            return np.zeros((0, 2)), np.zeros((0, 2))
+            return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
         rel = se2.between(self.odo.poses_xytheta[anchor_scan], self.odo.poses_xytheta[scans])
         counts = np.array([self.odo.points_base[s].shape[0] for s in scans])
         pts = np.concatenate([self.odo.points_base[s] for s in scans])
         per_point = np.repeat(rel, counts, axis=0)
         c, s_ = np.cos(per_point[:, 2]), np.sin(per_point[:, 2])
-        out = np.stack(
-            [
-                c * pts[:, 0] - s_ * pts[:, 1] + per_point[:, 0],
-                s_ * pts[:, 0] + c * pts[:, 1] + per_point[:, 1],
-            ],
-            axis=1,
-        )
+
+        def rotate(v: FloatArray) -> FloatArray:
+            return np.stack([c * v[:, 0] - s_ * v[:, 1], s_ * v[:, 0] + c * v[:, 1]], axis=1)
+
+        out = rotate(pts) + per_point[:, :2]
+        origins = se2.transform_points_each(rel, self.laser_origin_base)
+        origins = np.repeat(origins, counts, axis=0)
         if not normals:
-            return out, None
+            return out, None, origins
         nrm = np.concatenate([self._scan_normals(int(s)) for s in scans])
-        nrm_out = np.stack([c * nrm[:, 0] - s_ * nrm[:, 1], s_ * nrm[:, 0] + c * nrm[:, 1]], axis=1)
-        return out, nrm_out
+        return out, rotate(nrm), origins
 
     def target_grid(self, j: int) -> PointGrid:
         """The map around keyframe ``j`` in its frame (cached)."""
@@ -145,7 +158,7 @@ class LoopCloser:
             return grid
         m = self.cfg.target_keyframes
         scans = self._scans_between(j - m, j + m)
-        pts, nrm = self._points_in_frame(int(self.kf[j]), scans, normals=True)
+        pts, nrm, origins = self._points_in_frame(int(self.kf[j]), scans, normals=True)
         keep = voxel_thin(pts, 0.5 * self.odo_cfg.resolution_m)
         grid = PointGrid.from_points(
             pts[keep],
@@ -154,6 +167,7 @@ class LoopCloser:
             radius_m=self.odo_cfg.max_correspondence_m,
             sigma_m=self.odo_cfg.resolution_m,
         )
+        mark_free_space(grid, origins, pts, self.cfg.free_space_margin_m)
         self._targets[j] = grid
         if len(self._targets) > 64:
             self._targets.popitem(last=False)
@@ -163,7 +177,7 @@ class LoopCloser:
         """The query cloud of keyframe ``k`` in its frame, thinned."""
         scans = self._scans_between(k - self.cfg.query_keyframes, k - 1)
         scans = np.union1d(scans, [self.kf[k]]) if self._usable[self.kf[k]] else scans
-        pts, _ = self._points_in_frame(int(self.kf[k]), scans, normals=False)
+        pts, _, _ = self._points_in_frame(int(self.kf[k]), scans, normals=False)
         return pts[voxel_thin(pts, self.cfg.query_voxel_m)]
 
     # -- candidates ---------------------------------------------------------------------------------------
@@ -247,7 +261,9 @@ class LoopCloser:
             point_sigma_m=self.odo_cfg.point_sigma_m,
         )
         pose = al.pose_xytheta
-        fit = fitness(grid, pts, pose, cfg.inlier_m)
+        hits, conflicts = overlap(grid, pts, pose, cfg.inlier_m)
+        fit = hits / pts.shape[0]
+        conflict = conflicts / max(hits + conflicts, 1)
         e = pose - pred
         e[2] = se2.wrap(e[2])
         try:
@@ -261,8 +277,10 @@ class LoopCloser:
         ratio = float(eig[0] / eig[1]) if eig[1] > 0 else 0.0
         if found.score < cfg.min_score:
             return reject("low score", pose, found.score, fit, al.rms_m, d2)
-        if fit < cfg.min_inlier_fraction:
+        if fit < cfg.min_hit_fraction:
             return reject("low overlap", pose, found.score, fit, al.rms_m, d2)
+        if conflict > cfg.max_conflict_ratio:
+            return reject("free-space conflict", pose, found.score, fit, al.rms_m, d2)
         if al.rms_m > cfg.max_rms_m:
             return reject("high residual", pose, found.score, fit, al.rms_m, d2)
         if ratio < cfg.min_eigen_ratio:

@@ -173,6 +173,7 @@ class PointGrid:
         self._normals = np.empty((1024, 2))
         self._count = 0
         self._coarse: dict[int, NDArray[np.float32]] = {}
+        self.free: NDArray[np.bool_] | None = None  # cells seen free by the map's beams (optional)
         # row/column bounds [r0, r1) x [c0, c1) of the cells ever written, so a reset touches only those
         self._touched = np.array([shape[0], 0, shape[1], 0], dtype=np.int64)
 
@@ -187,6 +188,7 @@ class PointGrid:
         self.origin_xy_m = np.asarray(origin_xy_m, dtype=np.float64).copy()
         self._count = 0
         self._coarse.clear()
+        self.free = None
 
     @classmethod
     def around(
@@ -585,6 +587,99 @@ def refine_point_to_line(
         float(tolerance),
     )
     return Alignment(x, hess, int(n_in), float(rms), int(it))
+
+
+@nb.njit(cache=True)
+def _raycast_free(
+    free: NDArray[np.bool_],
+    x0: float,
+    y0: float,
+    res: float,
+    origins: FloatArray,
+    ends: FloatArray,
+    stop_short_m: float,
+) -> None:
+    """Mark the cells crossed by each beam ``origins[i] -> ends[i]`` as free, up to ``stop_short_m`` before
+    the end point (sampled every half cell)."""
+    h, w = free.shape
+    step = 0.5 * res
+    for i in range(origins.shape[0]):
+        ox = origins[i, 0]
+        oy = origins[i, 1]
+        dx = ends[i, 0] - ox
+        dy = ends[i, 1] - oy
+        length = math.sqrt(dx * dx + dy * dy) - stop_short_m
+        if length <= 0.0:
+            continue
+        norm = math.sqrt(dx * dx + dy * dy)
+        ux = dx / norm
+        uy = dy / norm
+        n = int(length / step)
+        for k in range(n + 1):
+            t = k * step
+            jx = math.floor((ox + t * ux - x0) / res)
+            jy = math.floor((oy + t * uy - y0) / res)
+            if 0 <= jx < w and 0 <= jy < h:
+                free[jy, jx] = True
+
+
+@nb.njit(cache=True)
+def _overlap(score, free, x0, y0, res, points, pose, thr):
+    h, w = score.shape
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    hits = 0
+    conflicts = 0
+    for k in range(points.shape[0]):
+        qx = c * points[k, 0] - s * points[k, 1] + pose[0]
+        qy = s * points[k, 0] + c * points[k, 1] + pose[1]
+        jx = math.floor((qx - x0) / res)
+        jy = math.floor((qy - y0) / res)
+        if 0 <= jx < w and 0 <= jy < h:
+            if score[jy, jx] >= thr:
+                hits += 1
+            elif free[jy, jx]:
+                conflicts += 1
+    return hits, conflicts
+
+
+def mark_free_space(
+    grid: PointGrid, origins_xy: FloatArray, ends_xy: FloatArray, stop_short_m: float
+) -> None:
+    """Record the free space seen by beams ``origins -> ends`` (P, 2) in ``grid.free`` (created if absent)."""
+    if grid.free is None:
+        grid.free = np.zeros(grid.shape, dtype=np.bool_)
+    _raycast_free(
+        grid.free,
+        float(grid.origin_xy_m[0]),
+        float(grid.origin_xy_m[1]),
+        grid.resolution_m,
+        np.ascontiguousarray(origins_xy, dtype=np.float64),
+        np.ascontiguousarray(ends_xy, dtype=np.float64),
+        float(stop_short_m),
+    )
+
+
+def overlap(
+    grid: PointGrid, points_xy: FloatArray, pose_xytheta: FloatArray, inlier_m: float = 0.1
+) -> tuple[int, int]:
+    """``(hits, conflicts)`` of points at a pose: near a map point (within ``inlier_m``), or in space the
+    map's beams saw free (requires :func:`mark_free_space`). Points elsewhere are unknown to the map."""
+    if grid.free is None:
+        raise ValueError("overlap() needs the grid's free space (mark_free_space)")
+    pts = np.ascontiguousarray(points_xy, dtype=np.float64)
+    thr = math.exp(-(inlier_m**2) / (2.0 * grid.sigma_m**2))
+    hits, conflicts = _overlap(
+        grid.score,
+        grid.free,
+        float(grid.origin_xy_m[0]),
+        float(grid.origin_xy_m[1]),
+        grid.resolution_m,
+        pts,
+        np.asarray(pose_xytheta, dtype=np.float64),
+        thr,
+    )
+    return int(hits), int(conflicts)
 
 
 @nb.njit(cache=True)
