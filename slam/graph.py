@@ -111,6 +111,7 @@ class PoseGraph:
         """A relative-pose factor ``between(x_from, x_to) = relative`` with child-frame covariance ``cov``."""
         cov = np.asarray(cov, dtype=np.float64)
         noise = _robust(robust, robust_width, gtsam.noiseModel.Gaussian.Covariance(cov))
+        key_from, key_to = int(key_from), int(key_to)
         f = gtsam.BetweenFactorPose2(key_from, key_to, _pose(relative_xytheta), noise)
         edge = Edge(kind, key_from, key_to, np.asarray(relative_xytheta, float), cov, robust, robust_width)
         self._add(f, edge)
