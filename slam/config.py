@@ -41,6 +41,10 @@ class OdometryConfig(BaseModel):
         0.1, ge=0, description="correlative search half-window around the prediction"
     )
     search_window_rad: float = Field(0.05, ge=0, description="rotational half-window (plus 30% of the turn)")
+    no_wheels_window_m: float = Field(
+        0.6, ge=0, description="search half-window without wheel odometry (constant-velocity guess)"
+    )
+    no_wheels_window_rad: float = Field(0.5, ge=0, description="... and its rotational half-window")
     search_step_rad: float = Field(0.0044, gt=0, description="rotation step of the correlative search")
     point_sigma_m: float = Field(0.05, gt=0, description="noise of one point-to-line residual (information)")
     sigma_from_residuals: bool = Field(

@@ -235,19 +235,24 @@ def run_odometry(
                 pred = se2.compose(poses[i - 1], inc)
                 cov_inc = wheel_increment_cov(inc, cfg)
                 if wheel_inc is None:
-                    cov_inc = cov_inc * 4.0
+                    cov_inc = np.diag([cfg.no_wheels_window_m**2] * 2 + [cfg.no_wheels_window_rad**2])
                 cov_pred_w = se2.rotate_cov_to_world(pred, cov_inc)
                 target = submaps.target
                 accepted = False
                 if target is not None and pts.shape[0] >= cfg.min_points:
                     t0 = time.perf_counter()
                     prior_info = np.linalg.inv(cov_pred_w)
+                    if wheel_inc is None:  # a constant-velocity guess: search wider
+                        window_m = max(cfg.search_window_m, cfg.no_wheels_window_m)
+                        window_rad = max(cfg.search_window_rad, cfg.no_wheels_window_rad)
+                    else:
+                        window_m = cfg.search_window_m
+                        window_rad = cfg.search_window_rad + 0.3 * abs(inc[2])
                     if kiss is not None:
                         start = kiss.align(pts, pred)
                     else:
-                        window_rad = cfg.search_window_rad + 0.3 * abs(inc[2])
                         start = correlative_search(
-                            target, pts, pred, cfg.search_window_m, window_rad, cfg.search_step_rad
+                            target, pts, pred, window_m, window_rad, cfg.search_step_rad
                         ).pose_xytheta
                     al = refine_point_to_line(
                         target,
@@ -265,8 +270,8 @@ def run_odometry(
                     dev = se2.between(pred, pose)
                     accepted = (
                         frac >= cfg.min_inlier_fraction
-                        and math.hypot(dev[0], dev[1]) <= cfg.gate_xy_m
-                        and abs(dev[2]) <= cfg.gate_theta_rad
+                        and math.hypot(dev[0], dev[1]) <= max(cfg.gate_xy_m, window_m)
+                        and abs(dev[2]) <= max(cfg.gate_theta_rad, window_rad)
                     )
                     t_match += time.perf_counter() - t0
                     inliers[i] = frac
