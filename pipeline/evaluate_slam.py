@@ -46,20 +46,31 @@ def evaluate_slam(
     progress: Progress | None = None,
 ) -> dict[str, Any]:
     """Run SLAM on ``input_path`` and score it against a relations file or a reference recording."""
+    from datasets.relations import read_relations
+
     progress = progress or Progress()
     config = load_config(config_path)
     rec = open_dataset(input_path, config.input)
     if rec.scans is None or len(rec.scans) == 0:
         raise PipelineError(f"{input_path}: no laser scans to run SLAM on")
+    # read every input before the (long) SLAM run, so that bad input fails at once
+    relations = read_relations(relations_path) if relations_path is not None else None
+    ref = None
+    if reference_path is not None:
+        same = Path(reference_path).resolve() == Path(rec.source).resolve()
+        ref = rec if same else open_dataset(reference_path, config.input)
+        scans, rows = match_reference(rec, ref)
+    if relations is not None:
+        rel_match = match_relations(rec, relations, relations_path)
     wheel = rec.scan_poses if rec.scan_poses is not None else rec.odometry
     t0 = time.perf_counter()
     result = run_slam(rec.scans, wheel, rec.laser_in_base_xytheta, config.slam, progress)
     wall_s = time.perf_counter() - t0
     out: dict[str, Any] = {"relations": None, "ate_rmse_m": None}
-    if reference_path is not None:
-        out.update(score_reference(rec, result, reference_path, config))
-    if relations_path is not None:
-        out["relations"] = score_relations(rec, result, relations_path)
+    if ref is not None:
+        out.update(score_reference(rec, ref, scans, rows, result, reference_path))
+    if relations is not None:
+        out["relations"] = score_relations(rec, result, relations, rel_match)
     out["slam"] = result.summary()
     out["slam"]["wall_s"] = wall_s
     out["slam"]["realtime_factor"] = _duration_s(rec) / wall_s if wall_s > 0 else None
@@ -100,12 +111,15 @@ def match_reference(rec: Recording, ref: Recording) -> tuple[np.ndarray, np.ndar
 
 
 def score_reference(
-    rec: Recording, result: SlamResult, reference_path: str | Path, config: Any
+    rec: Recording,
+    ref: Recording,
+    scans: np.ndarray,
+    rows: np.ndarray,
+    result: SlamResult,
+    reference_path: str | Path,
 ) -> dict[str, Any]:
-    """ATE before / after, relations between consecutive reference scans, NEES before / after."""
-    same = Path(reference_path).resolve() == Path(rec.source).resolve()
-    ref = rec if same else open_dataset(reference_path, config.input)
-    scans, rows = match_reference(rec, ref)
+    """ATE before / after, relations between consecutive reference scans, NEES before / after of the
+    ``scans`` of ``rec`` matched to the ``rows`` of ``ref.reference``."""
     if len(scans) < 3:
         raise PipelineError(f"{reference_path}: only {len(scans)} scans matched to {rec.source}")
     mount = rec.laser_in_base_xytheta
@@ -131,11 +145,9 @@ def score_reference(
     }
 
 
-def score_relations(rec: Recording, result: SlamResult, relations_path: str | Path) -> dict[str, Any]:
-    """The relations metric (SPEC keys) of the trajectory after loop closure, plus ``before`` and counts."""
-    from datasets.relations import read_relations
-
-    rel = read_relations(relations_path)
+def match_relations(rec: Recording, relations: Any, relations_path: str | Path) -> tuple:
+    """``(stamps used, ok mask, scan index of t1, scan index of t2)`` of each relation: the scan stamps, or
+    the CARMEN logger stamps when these fit more relations; DatasetError when none fits."""
     candidates = [("scan", rec.scans.stamps_ns)]
     logger = rec.meta.get("logger_stamps_ns") if isinstance(rec.meta, dict) else None
     if logger is not None and len(logger) == len(rec.scans):
@@ -143,19 +155,24 @@ def score_relations(rec: Recording, result: SlamResult, relations_path: str | Pa
     best = None
     for name, stamps in candidates:
         order = np.argsort(stamps, kind="stable")
-        i1 = metrics.index_at_stamps(stamps[order], rel.stamps1_ns, STAMP_TOLERANCE_NS)
-        i2 = metrics.index_at_stamps(stamps[order], rel.stamps2_ns, STAMP_TOLERANCE_NS)
+        i1 = metrics.index_at_stamps(stamps[order], relations.stamps1_ns, STAMP_TOLERANCE_NS)
+        i2 = metrics.index_at_stamps(stamps[order], relations.stamps2_ns, STAMP_TOLERANCE_NS)
         ok = (i1 >= 0) & (i2 >= 0)
         if best is None or ok.sum() > best[1].sum():
             best = (name, ok, np.where(ok, order[i1], -1), np.where(ok, order[i2], -1))
-    name, ok, i1, i2 = best
-    if not np.any(ok):
+    if not np.any(best[1]):
         raise DatasetError(
-            f"{relations_path}: none of its {len(rel)} relations has both stamps within 50 ms of a scan of "
-            f"{rec.source}"
+            f"{relations_path}: none of its {len(relations)} relations has both stamps within 50 ms of a "
+            f"scan of {rec.source}"
         )
+    return best
+
+
+def score_relations(rec: Recording, result: SlamResult, relations: Any, matched: tuple) -> dict[str, Any]:
+    """The relations metric (SPEC keys) of the trajectory after loop closure, plus ``before`` and counts."""
+    name, ok, i1, i2 = matched
     mount = rec.laser_in_base_xytheta
-    target = np.column_stack([rel.xyz_m[ok, :2], rel.rpy_rad[ok, 2]])
+    target = np.column_stack([relations.xyz_m[ok, :2], relations.rpy_rad[ok, 2]])
     out: dict[str, Any] = {}
     for which, poses in (("after", result.poses_after_xytheta), ("before", result.poses_before_xytheta)):
         laser = _laser_poses(poses, mount)
