@@ -88,8 +88,8 @@ class LoopClosureConfig(BaseModel):
     search_cov_inflation: float = Field(
         10.0,
         ge=1,
-        description="the candidate gate and search window use the marginals times this "
-        "(a generous search; verification decides)",
+        description="the candidate gate and search window use the marginals times this, or times the "
+        "running variance factor if larger (a generous search; verification decides)",
     )
     gate_chi2: float = Field(9.21, gt=0, description="Mahalanobis gate of candidates (chi2 2 dof, 99%)")
     max_candidates: int = Field(3, ge=1, le=50, description="candidates matched per keyframe, nearest first")
@@ -166,13 +166,16 @@ class GraphConfig(BaseModel):
         "(sum of squared whitened residuals over the redundancy), so marginals match the data",
     )
     variance_factor_min_loops: int = Field(
-        10, ge=1, description="least agreeing loop closures to estimate it"
+        30, ge=1, description="least agreeing loop closures to estimate it (below: the calibrated scales)"
     )
     variance_factor_min: float = Field(
         1.0, gt=0, description="floor of the variance factor (1: the data may inflate the covariances only)"
     )
     variance_factor_gate_chi2: float = Field(
-        16.27, gt=0, description="loop closures beyond this whitened error (x the factor) are not counted"
+        200.0,
+        gt=0,
+        description="loop closures beyond this whitened error (x the factor) are not counted: only gross "
+        "blunders; real residuals are heavy-tailed and the robust loss already guards the solution",
     )
     variance_factor_iterations: int = Field(
         4, ge=1, le=20, description="re-weight and re-solve at most this often"

@@ -167,7 +167,7 @@ class LoopCloser:
             radius_m=self.odo_cfg.max_correspondence_m,
             sigma_m=self.odo_cfg.resolution_m,
         )
-        mark_free_space(grid, origins, pts, self.cfg.free_space_margin_m)
+        mark_free_space(grid, origins[keep], pts[keep], self.cfg.free_space_margin_m)
         self._targets[j] = grid
         if len(self._targets) > 64:
             self._targets.popitem(last=False)

@@ -184,7 +184,7 @@ def run_slam(
                 ts = time.perf_counter()
                 found = []
                 query = None
-                gate_scale = max(scale, 1.0) * lc.search_cov_inflation
+                gate_scale = max(scale, lc.search_cov_inflation)
                 for j, _d2 in closer.candidates(k, est, cov_w * gate_scale):
                     if query is None:
                         query = closer.query_points(k)
