@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -48,6 +50,21 @@ class ProgressLike(Protocol):
     """Anything with ``stage(name, total)`` returning a context manager of a bar (pipeline.progress)."""
 
     def stage(self, name: str, total: int | None = None): ...
+
+
+class _NullBar:
+    def advance(self, amount: int = 1) -> None:
+        pass
+
+
+@contextmanager
+def stage(progress: ProgressLike | None, name: str, total: int | None) -> Iterator[StageBar]:
+    """``progress.stage(name, total)``, or a silent bar without a progress reporter."""
+    if progress is None:
+        yield _NullBar()
+    else:
+        with progress.stage(name, total=total) as bar:
+            yield bar
 
 
 @dataclass(frozen=True)
@@ -225,9 +242,7 @@ def run_odometry(
     last_inc = np.zeros(3)
     last_insert: FloatArray | None = None
     chunk = max(1, n // 200)
-    bar_ctx = progress.stage("odometry", total=n) if progress is not None else None
-    bar = bar_ctx.__enter__() if bar_ctx is not None else None
-    try:
+    with stage(progress, "odometry", n) as bar:
         for i in range(n):
             pts = points_base[i]
             if i > 0:
@@ -310,12 +325,9 @@ def run_odometry(
                     kiss.insert(poses[i], pts)
                 t_insert += time.perf_counter() - t0
                 last_insert = poses[i].copy()
-            if bar is not None and (i + 1) % chunk == 0:
+            if (i + 1) % chunk == 0:
                 bar.advance(chunk)
-        if bar is not None and n % chunk:
+        if n % chunk:
             bar.advance(n % chunk)
-    finally:
-        if bar_ctx is not None:
-            bar_ctx.__exit__(None, None, None)
     timings = {"odometry_match_s": t_match, "odometry_insert_s": t_insert, "odometry_normals_s": t_normals}
     return OdometryResult(poses, covs, status, inliers, rms, points_base, timings)

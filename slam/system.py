@@ -26,7 +26,7 @@ from slam.config import GraphConfig, SlamConfig
 from slam.graph import Edge, PoseGraph, edge_errors2
 from slam.keyframes import keyframe_of_scan, relative_cov_body, select_keyframes
 from slam.loop_closure import LoopCloser, LoopClosure
-from slam.odometry import ProgressLike, run_odometry, scan_points_base
+from slam.odometry import ProgressLike, run_odometry, scan_points_base, stage
 
 FloatArray = NDArray[np.float64]
 
@@ -172,7 +172,7 @@ def run_slam(
     rejected: list[LoopClosure] = []
     scale = 1.0  # running a-posteriori variance factor
     last_closure_path_m = -math.inf
-    with _stage(progress, "loop closure", k_count) as bar:
+    with stage(progress, "loop closure", k_count) as bar:
         for k in range(1, k_count):
             graph.add_pose(se2.compose(est[k - 1], rel[k - 1]))
             graph.add_between("odometry", k - 1, k, rel[k - 1], fac_cov[k - 1])
@@ -236,7 +236,7 @@ def run_slam(
             break
     timings["graph_batch_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    with _stage(progress, "marginals", None):
+    with stage(progress, "marginals", None):
         kf_cov_after_body = final.marginals_body()
     timings["marginals_s"] = time.perf_counter() - t0
     kf_cov_before_body = se2.propagate_chain_cov_body(rel, fac_cov * scale, cov0)
@@ -329,20 +329,3 @@ def variance_factor(
 
 def _sym(c: FloatArray) -> FloatArray:
     return 0.5 * (c + np.swapaxes(c, -1, -2))
-
-
-class _NullBar:
-    def advance(self, amount: int = 1) -> None:
-        pass
-
-
-class _NullStage:
-    def __enter__(self) -> _NullBar:
-        return _NullBar()
-
-    def __exit__(self, *exc) -> None:
-        return None
-
-
-def _stage(progress: ProgressLike | None, name: str, total: int | None):
-    return progress.stage(name, total=total) if progress is not None else _NullStage()
