@@ -1,0 +1,209 @@
+"""``evaluate slam INPUT (--relations FILE | --reference LOG)``: the SLAM metrics of SPEC section 6.
+
+Runs the SLAM stage on INPUT (its scans, its per-scan wheel odometry and laser mounting) and scores the
+trajectories before and after loop closure:
+
+- ``--reference LOG``: a recording whose ``reference`` poses are the (pseudo) ground truth -- a
+  GMapping-corrected CARMEN log (``*.gfs.log``, ``*-corrected.log*``) or a simulated bag with ground truth
+  (the input itself may be given). Scans are matched by content and logger stamp for two CARMEN logs
+  (:func:`datasets.carmen.match_scans`), else by scan stamp. ATE RMSE (m) after SE(2) alignment, the
+  relations error between consecutive reference scans, and the NEES of the covariances.
+- ``--relations FILE``: Kuemmerle et al. relations ``t1 t2 x y z roll pitch yaw``; the estimated poses at
+  ``t1`` / ``t2`` are those of the scans with these stamps (the scan stamps, or the CARMEN logger stamps when
+  they fit more relations), within ``STAMP_TOLERANCE_NS``.
+
+Poses are compared in the laser frame (the base poses composed with each recording's laser mounting), the
+frame of corrected CARMEN logs. The returned dict has the SPEC keys ``relations`` and ``ate_rmse_m`` (null
+when their input is absent) plus ``table`` (what the CLI prints) and details.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from datasets.errors import DatasetError
+from datasets.registry import open_dataset
+from datasets.types import Recording
+from pipeline.config import load_config
+from pipeline.errors import PipelineError
+from pipeline.progress import Progress
+from slam import geometry as se2
+from slam import metrics
+from slam.system import SlamResult, run_slam
+
+STAMP_TOLERANCE_NS = 50_000_000  # 50 ms: a relation stamp farther from every scan stamp is not matched
+
+
+def evaluate_slam(
+    input_path: str | Path,
+    relations_path: str | Path | None = None,
+    reference_path: str | Path | None = None,
+    config_path: str | Path | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """Run SLAM on ``input_path`` and score it against a relations file or a reference recording."""
+    from datasets.relations import read_relations
+
+    progress = progress or Progress()
+    config = load_config(config_path)
+    rec = open_dataset(input_path, config.input)
+    if rec.scans is None or len(rec.scans) == 0:
+        raise PipelineError(f"{input_path}: no laser scans to run SLAM on")
+    # read every input before the (long) SLAM run, so that bad input fails at once
+    relations = read_relations(relations_path) if relations_path is not None else None
+    ref = None
+    if reference_path is not None:
+        same = Path(reference_path).resolve() == Path(rec.source).resolve()
+        ref = rec if same else open_dataset(reference_path, config.input)
+        scans, rows = match_reference(rec, ref)
+    if relations is not None:
+        rel_match = match_relations(rec, relations, relations_path)
+    wheel = rec.scan_poses if rec.scan_poses is not None else rec.odometry
+    t0 = time.perf_counter()
+    result = run_slam(rec.scans, wheel, rec.laser_in_base_xytheta, config.slam, progress)
+    wall_s = time.perf_counter() - t0
+    out: dict[str, Any] = {"relations": None, "ate_rmse_m": None}
+    if ref is not None:
+        out.update(score_reference(rec, ref, scans, rows, result, reference_path))
+    if relations is not None:
+        out["relations"] = score_relations(rec, result, relations, rel_match)
+    out["slam"] = result.summary()
+    out["slam"]["wall_s"] = wall_s
+    out["slam"]["realtime_factor"] = _duration_s(rec) / wall_s if wall_s > 0 else None
+    out["table"] = _table(out)
+    return out
+
+
+def _duration_s(rec: Recording) -> float:
+    s = rec.scans.stamps_ns
+    return float(s[-1] - s[0]) / 1e9 if len(s) > 1 else 0.0
+
+
+def _laser_poses(base_xytheta: np.ndarray, mount: np.ndarray) -> np.ndarray:
+    return se2.compose(base_xytheta, np.asarray(mount, dtype=np.float64))
+
+
+def match_reference(rec: Recording, ref: Recording) -> tuple[np.ndarray, np.ndarray]:
+    """``(scan indices in rec, row indices in ref.reference)`` of the scans both recordings share."""
+    if ref.reference is None:
+        raise PipelineError(
+            f"{ref.source}: no reference poses (expected a corrected log such as *.gfs.log or "
+            "*-corrected.log*, or a simulated bag with ground truth)"
+        )
+    same = Path(rec.source).resolve() == Path(ref.source).resolve()
+    if same or (ref.scans is not None and np.array_equal(ref.reference.stamps_ns, rec.scans.stamps_ns)):
+        n = len(rec.scans)
+        return np.arange(n), np.arange(n)
+    if rec.format == "carmen" and ref.format == "carmen" and "logger_stamps_ns" in ref.meta:
+        from datasets.carmen import match_scans
+
+        idx = match_scans(ref, rec)
+        return idx, np.arange(len(idx))
+    rows = metrics.index_at_stamps(rec.scans.stamps_ns, ref.reference.stamps_ns, STAMP_TOLERANCE_NS)
+    ok = rows >= 0
+    if not np.any(ok):
+        raise PipelineError(f"{ref.source}: no reference pose within 50 ms of a scan of {rec.source}")
+    return rows[ok], np.nonzero(ok)[0]
+
+
+def score_reference(
+    rec: Recording,
+    ref: Recording,
+    scans: np.ndarray,
+    rows: np.ndarray,
+    result: SlamResult,
+    reference_path: str | Path,
+) -> dict[str, Any]:
+    """ATE before / after, relations between consecutive reference scans, NEES before / after of the
+    ``scans`` of ``rec`` matched to the ``rows`` of ``ref.reference``."""
+    if len(scans) < 3:
+        raise PipelineError(f"{reference_path}: only {len(scans)} scans matched to {rec.source}")
+    mount = rec.laser_in_base_xytheta
+    truth = _laser_poses(ref.reference.poses_xytheta[rows], ref.laser_in_base_xytheta)
+    before = _laser_poses(result.poses_before_xytheta[scans], mount)
+    after = _laser_poses(result.poses_after_xytheta[scans], mount)
+    rel_truth = se2.between(truth[:-1], truth[1:])
+    rel_after = metrics.relation_errors(after[:-1], after[1:], rel_truth).as_dict()
+    rel_before = metrics.relation_errors(before[:-1], before[1:], rel_truth).as_dict()
+    # NEES of the base poses (the covariances are the base's), reference moved to the base frame
+    truth_base = se2.compose(truth, se2.inverse(mount))
+    nees_b = metrics.nees(result.poses_before_xytheta[scans], result.cov_before_xytheta[scans], truth_base)
+    nees_a = metrics.nees(result.poses_after_xytheta[scans], result.cov_after_xytheta[scans], truth_base)
+    return {
+        "ate_rmse_m": {"before": metrics.ate_rmse(before, truth), "after": metrics.ate_rmse(after, truth)},
+        "reference": {
+            "path": str(reference_path),
+            "matched_scans": len(scans),
+            "relations_consecutive": {"before": rel_before, "after": rel_after},
+            "nees_mean": {"before": float(np.mean(nees_b[1:])), "after": float(np.mean(nees_a[1:]))},
+            "nees_median": {"before": float(np.median(nees_b[1:])), "after": float(np.median(nees_a[1:]))},
+        },
+    }
+
+
+def match_relations(rec: Recording, relations: Any, relations_path: str | Path) -> tuple:
+    """``(stamps used, ok mask, scan index of t1, scan index of t2)`` of each relation: the scan stamps, or
+    the CARMEN logger stamps when these fit more relations; DatasetError when none fits."""
+    candidates = [("scan", rec.scans.stamps_ns)]
+    logger = rec.meta.get("logger_stamps_ns") if isinstance(rec.meta, dict) else None
+    if logger is not None and len(logger) == len(rec.scans):
+        candidates.append(("logger", np.asarray(logger, dtype=np.int64)))
+    best = None
+    for name, stamps in candidates:
+        order = np.argsort(stamps, kind="stable")
+        i1 = metrics.index_at_stamps(stamps[order], relations.stamps1_ns, STAMP_TOLERANCE_NS)
+        i2 = metrics.index_at_stamps(stamps[order], relations.stamps2_ns, STAMP_TOLERANCE_NS)
+        ok = (i1 >= 0) & (i2 >= 0)
+        if best is None or ok.sum() > best[1].sum():
+            best = (name, ok, np.where(ok, order[i1], -1), np.where(ok, order[i2], -1))
+    if not np.any(best[1]):
+        raise DatasetError(
+            f"{relations_path}: none of its {len(relations)} relations has both stamps within 50 ms of a "
+            f"scan of {rec.source}"
+        )
+    return best
+
+
+def score_relations(rec: Recording, result: SlamResult, relations: Any, matched: tuple) -> dict[str, Any]:
+    """The relations metric (SPEC keys) of the trajectory after loop closure, plus ``before`` and counts."""
+    name, ok, i1, i2 = matched
+    mount = rec.laser_in_base_xytheta
+    target = np.column_stack([relations.xyz_m[ok, :2], relations.rpy_rad[ok, 2]])
+    out: dict[str, Any] = {}
+    for which, poses in (("after", result.poses_after_xytheta), ("before", result.poses_before_xytheta)):
+        laser = _laser_poses(poses, mount)
+        errs = metrics.relation_errors(laser[i1[ok]], laser[i2[ok]], target).as_dict()
+        if which == "after":
+            out.update(errs)
+        else:
+            out["before"] = errs
+    out["unmatched"] = int(np.sum(~ok))
+    out["matched_by"] = name
+    return out
+
+
+def _table(out: dict[str, Any]) -> dict[str, Any]:
+    rows: dict[str, Any] = {}
+    ate = out.get("ate_rmse_m")
+    if ate:
+        rows["ATE RMSE before loop closure (m)"] = ate["before"]
+        rows["ATE RMSE after loop closure (m)"] = ate["after"]
+    ref = out.get("reference")
+    if ref:
+        rows["reference scans matched"] = ref["matched_scans"]
+        rows["NEES mean after (3 if consistent)"] = ref["nees_mean"]["after"]
+    rel = out.get("relations")
+    if rel:
+        rows["relations"] = rel["count"]
+        rows["relations translation mean / std (m)"] = f"{rel['trans_mean_m']:.4f} / {rel['trans_std_m']:.4f}"
+        rows["relations rotation mean / std (deg)"] = f"{rel['rot_mean_deg']:.3f} / {rel['rot_std_deg']:.3f}"
+    s = out["slam"]
+    rows["scans / keyframes"] = f"{s['scans']} / {s['keyframes']}"
+    closures = f"{s['loop_closures_accepted']} / {s['loop_closures_rejected']}"
+    rows["loop closures accepted / rejected"] = closures
+    rows["SLAM wall time (s)"] = s["wall_s"]
+    return rows

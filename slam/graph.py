@@ -1,0 +1,233 @@
+"""The GTSAM ``Pose2`` pose graph: incremental (iSAM2) while loop closures are searched, batch
+Levenberg-Marquardt at the end, marginal covariances of every keyframe.
+
+Keys are keyframe indices 0..K-1. Factor noise is given as (3, 3) covariances in the child frame of the
+measured relative pose (GTSAM's ``BetweenFactor`` convention, order x, y, theta); loop closures can carry a
+robust loss (Cauchy, Huber or dynamic covariance scaling) so that a false closure cannot wreck the graph.
+Marginals leave this module in GTSAM's body frame; :mod:`slam.geometry` rotates them to the world.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from slam import geometry as se2
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Edge:
+    """One factor of the graph, for export (g2o) and inspection.
+
+    ``cov`` (3, 3) is the covariance in the child frame of the measurement (GTSAM ``BetweenFactor`` and
+    g2o ``EDGE_SE2`` convention); for a prior, of the pose itself. ``robust`` names the loss (``"none"``,
+    ``"cauchy"``, ``"huber"``, ``"dcs"``) and ``robust_width`` its width in whitened units.
+    """
+
+    kind: str  # "prior", "odometry" or "loop"
+    key_from: int
+    key_to: int
+    measurement_xytheta: FloatArray
+    cov: FloatArray
+    robust: str = "none"
+    robust_width: float = 1.0
+
+    @property
+    def information(self) -> FloatArray:
+        """(3, 3) inverse of ``cov``."""
+        return np.linalg.inv(self.cov)
+
+    def scaled(self, factor: float) -> Edge:
+        """The same edge with its covariance multiplied by ``factor``."""
+        return Edge(
+            self.kind,
+            self.key_from,
+            self.key_to,
+            self.measurement_xytheta,
+            self.cov * factor,
+            self.robust,
+            self.robust_width,
+        )
+
+
+def _robust(kind: str, width: float, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
+    est = gtsam.noiseModel.mEstimator
+    if kind == "none":
+        return base
+    m = {"cauchy": est.Cauchy, "huber": est.Huber, "dcs": est.DCS}[kind].Create(width)
+    return gtsam.noiseModel.Robust.Create(m, base)
+
+
+def _pose(p: FloatArray) -> gtsam.Pose2:
+    return gtsam.Pose2(float(p[0]), float(p[1]), float(p[2]))
+
+
+class PoseGraph:
+    """A growing ``Pose2`` graph optimised incrementally with iSAM2."""
+
+    def __init__(self) -> None:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(0.01)
+        params.relinearizeSkip = 1
+        self._isam = gtsam.ISAM2(params)
+        self.graph = gtsam.NonlinearFactorGraph()
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self.edges: list[Edge] = []
+        self._loop_factor_index: dict[int, int] = {}
+        self._n = 0
+        self._estimate: gtsam.Values | None = None
+
+    def __len__(self) -> int:
+        return self._n
+
+    def add_pose(self, initial_xytheta: FloatArray) -> int:
+        """A new keyframe variable with its initial guess; returns its key."""
+        key = self._n
+        self._new_values.insert(key, _pose(initial_xytheta))
+        self._n += 1
+        return key
+
+    def add_prior(self, key: int, pose_xytheta: FloatArray, cov: FloatArray) -> None:
+        cov = np.asarray(cov, dtype=np.float64)
+        f = gtsam.PriorFactorPose2(key, _pose(pose_xytheta), gtsam.noiseModel.Gaussian.Covariance(cov))
+        self._add(f, Edge("prior", key, key, np.asarray(pose_xytheta, float), cov))
+
+    def add_between(
+        self,
+        kind: str,
+        key_from: int,
+        key_to: int,
+        relative_xytheta: FloatArray,
+        cov: FloatArray,
+        robust: str = "none",
+        robust_width: float = 1.0,
+    ) -> None:
+        """A relative-pose factor ``between(x_from, x_to) = relative`` with child-frame covariance ``cov``."""
+        cov = np.asarray(cov, dtype=np.float64)
+        noise = _robust(robust, robust_width, gtsam.noiseModel.Gaussian.Covariance(cov))
+        key_from, key_to = int(key_from), int(key_to)
+        f = gtsam.BetweenFactorPose2(key_from, key_to, _pose(relative_xytheta), noise)
+        edge = Edge(kind, key_from, key_to, np.asarray(relative_xytheta, float), cov, robust, robust_width)
+        self._add(f, edge)
+
+    @classmethod
+    def from_edges(cls, edges: list[Edge], initial_xytheta: FloatArray) -> PoseGraph:
+        """A graph holding ``edges`` with ``initial_xytheta`` (K, 3) as its estimate (for batch solving)."""
+        g = cls()
+        for p in np.asarray(initial_xytheta, dtype=np.float64):
+            g.add_pose(p)
+        for e in edges:
+            if e.kind == "prior":
+                g.add_prior(e.key_from, e.measurement_xytheta, e.cov)
+            else:
+                g.add_between(
+                    e.kind, e.key_from, e.key_to, e.measurement_xytheta, e.cov, e.robust, e.robust_width
+                )
+        g._estimate = g._new_values
+        return g
+
+    def _add(self, factor: gtsam.NonlinearFactor, edge: Edge) -> None:
+        self._new_factors.add(factor)
+        self.graph.add(factor)
+        self.edges.append(edge)
+
+    def update(self, extra_iterations: int = 0) -> None:
+        """Hand new factors and variables to iSAM2 (plus ``extra_iterations`` relinearisation passes)."""
+        self._isam.update(self._new_factors, self._new_values)
+        for _ in range(extra_iterations):
+            self._isam.update()
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self._estimate = self._isam.calculateEstimate()
+
+    def estimate(self) -> FloatArray:
+        """(K, 3) current estimate of every keyframe pose."""
+        if self._estimate is None:
+            self.update()
+        return _values_to_array(self._estimate, self._n)
+
+    def estimate_of(self, key: int) -> FloatArray:
+        if self._estimate is None:
+            self.update()
+        p = self._estimate.atPose2(key)
+        return np.array([p.x(), p.y(), p.theta()])
+
+    def marginal_body(self, key: int) -> FloatArray:
+        """(3, 3) iSAM2 marginal covariance of one keyframe, body frame."""
+        return np.asarray(self._isam.marginalCovariance(key))
+
+    def set_estimate(self, poses_xytheta: FloatArray) -> None:
+        """Replace the current estimate (K, 3) (the batch optimiser starts from it)."""
+        values = gtsam.Values()
+        for k, p in enumerate(np.asarray(poses_xytheta, dtype=np.float64)):
+            values.insert(k, _pose(p))
+        self._estimate = values
+
+    def optimize_batch(self, max_iterations: int = 100) -> FloatArray:
+        """Levenberg-Marquardt on the whole graph from the current estimate; returns (K, 3) poses."""
+        if self._estimate is None:
+            self.update()
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        result = gtsam.LevenbergMarquardtOptimizer(self.graph, self._estimate, params).optimize()
+        self._estimate = result
+        return _values_to_array(result, self._n)
+
+    def marginals_body(self) -> FloatArray:
+        """(K, 3, 3) marginal covariances of every keyframe at the current estimate, body frame."""
+        if self._estimate is None:
+            self.update()
+        marginals = gtsam.Marginals(self.graph, self._estimate)
+        return np.stack([np.asarray(marginals.marginalCovariance(k)) for k in range(self._n)])
+
+    def error(self) -> float:
+        """Total graph error at the current estimate."""
+        return float(self.graph.error(self._estimate))
+
+
+def _values_to_array(values: gtsam.Values, n: int) -> FloatArray:
+    out = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
+    if out.shape[0] != n:
+        raise ValueError(f"pose graph: {out.shape[0]} poses in the estimate, expected {n}")
+    return out
+
+
+def edge_errors2(poses_xytheta: FloatArray, edges: list[Edge]) -> FloatArray:
+    """(E,) squared whitened errors ``r^T cov^-1 r`` of every edge at ``poses_xytheta`` (K, 3), without the
+    robust loss; ``r`` is GTSAM's error (``Logmap(z^-1 * between(x_from, x_to))``, or of the prior)."""
+    if not edges:
+        return np.zeros(0)
+    p = np.asarray(poses_xytheta, dtype=np.float64)
+    i = np.array([e.key_from for e in edges])
+    j = np.array([e.key_to for e in edges])
+    z = np.stack([e.measurement_xytheta for e in edges])
+    info = np.linalg.inv(np.stack([e.cov for e in edges]))
+    prior = np.array([e.kind == "prior" for e in edges])
+    h = np.where(prior[:, None], p[i], se2.between(p[i], p[j]))
+    r = se2.logmap(se2.between(z, h))
+    return np.einsum("ni,nij,nj->n", r, info, r)
+
+
+def chain_graph_marginals(
+    increments_xytheta: FloatArray, cov_increments: FloatArray, start_xytheta: FloatArray, cov0: FloatArray
+) -> FloatArray:
+    """(N+1, 3, 3) GTSAM body-frame marginals of a pure odometry chain (a reference for the tests)."""
+    g = PoseGraph()
+    pose = np.asarray(start_xytheta, dtype=np.float64)
+    g.add_pose(pose)
+    g.add_prior(0, pose, cov0)
+    for i, (inc, cov) in enumerate(zip(increments_xytheta, cov_increments, strict=True)):
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        pose = np.array(
+            [pose[0] + c * inc[0] - s * inc[1], pose[1] + s * inc[0] + c * inc[1], pose[2] + inc[2]]
+        )
+        g.add_pose(pose)
+        g.add_between("odometry", i, i + 1, inc, cov)
+    g.update()
+    return g.marginals_body()

@@ -1,0 +1,309 @@
+"""Loop closures: candidates gated by the current uncertainty, correlative search, verification.
+
+For a new keyframe ``k`` (the *query*), earlier keyframes ``j`` (the *targets*) are candidates when
+(1) the robot travelled at least ``min_separation_m`` between them and (2) their positions are compatible
+with the current marginals: ``dp^T (S_k + S_j + r^2 I)^-1 dp <= gate_chi2`` (2 dof, ``r`` the radius within
+which two keyframes still see the same place). The nearest candidates are matched:
+
+- the query is the keyframe's scan merged with the scans since ``query_keyframes`` earlier keyframes (in
+  the keyframe's frame through the odometry, locally accurate), thinned to one point per voxel;
+- the target is the map of the scans within ``target_keyframes`` keyframes of ``j`` (in ``j``'s frame);
+- a correlative search over a window of ``window_sigmas`` standard deviations of the predicted relative
+  pose (coarse-to-fine when wide), then point-to-line Gauss-Newton (no prior);
+- verification: the mean correlative score; the overlap gate: the fraction of query points within
+  ``inlier_m`` of a target point after refinement (*hits*); the free-space gate: among the query points
+  that fall where the target knows something, the fraction lying in space its beams saw free (*conflicts*:
+  a wrong alignment puts points inside rooms and corridors, a right one with partial overlap does not);
+  the residual RMS; the ratio of the smallest to the largest eigenvalue of the translational alignment
+  information (rejects corridors, where the match slides along the axis); the Mahalanobis distance of the
+  found relative pose from the prediction.
+
+An accepted closure enters the graph with the alignment covariance (scaled like the odometry) and a robust
+loss, so that a false closure that passed the gates is down-weighted rather than obeyed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam import geometry as se2
+from slam.config import LoopClosureConfig, OdometryConfig
+from slam.odometry import FIRST, MATCHED, OdometryResult
+from slam.scan_matching import (
+    PointGrid,
+    correlative_search,
+    mark_free_space,
+    overlap,
+    refine_point_to_line,
+    scan_normals,
+)
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class LoopClosure:
+    """One verified (or rejected) loop-closure attempt.
+
+    ``relative_xytheta`` is the query keyframe's pose in the target keyframe's frame
+    (``between(target, query)``); ``information`` (3, 3) its information in the query's frame (GTSAM/g2o
+    convention), already scaled for the graph. ``score`` is the mean correlative score, ``fitness`` the
+    overlap (fraction of query points matched), ``mahalanobis2`` the squared distance from the prediction.
+    """
+
+    query_keyframe: int
+    target_keyframe: int
+    query_scan: int
+    target_scan: int
+    relative_xytheta: FloatArray
+    information: FloatArray
+    score: float
+    fitness: float
+    rms_m: float
+    mahalanobis2: float
+    accepted: bool
+    reason: str
+    window_xy_m: float = 0.0
+    window_theta_rad: float = 0.0
+    consistent: bool = True  # counted as an inlier by the final variance-factor estimate
+
+
+def voxel_thin(points_xy: FloatArray, voxel_m: float) -> NDArray[np.int64]:
+    """Indices of the first point in each occupied voxel (in input order)."""
+    if points_xy.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    cells = np.floor(points_xy / voxel_m).astype(np.int64)
+    cells -= cells.min(axis=0)
+    keys = cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]
+    _, first = np.unique(keys, return_index=True)
+    return np.sort(first)
+
+
+class LoopCloser:
+    """Finds and verifies loop closures between keyframes of one odometry run."""
+
+    def __init__(
+        self,
+        odometry: OdometryResult,
+        keyframe_scans: NDArray[np.int64],
+        cfg: LoopClosureConfig,
+        odo_cfg: OdometryConfig,
+        cov_scale: float,
+        laser_in_base_xytheta: FloatArray | None = None,
+    ) -> None:
+        self.odo = odometry
+        mount = np.zeros(3) if laser_in_base_xytheta is None else np.asarray(laser_in_base_xytheta, float)
+        self.laser_origin_base = mount[:2].copy()
+        self.kf = np.asarray(keyframe_scans, dtype=np.int64)
+        self.cfg = cfg
+        self.odo_cfg = odo_cfg
+        self.cov_scale = cov_scale
+        poses = odometry.poses_xytheta
+        steps = np.hypot(*np.diff(poses[:, :2], axis=0).T) if len(poses) > 1 else np.zeros(0)
+        self.path_m = np.concatenate([[0.0], np.cumsum(steps)])
+        self._targets: OrderedDict[int, PointGrid] = OrderedDict()
+        self._normals: dict[int, FloatArray] = {}
+        self._usable = np.isin(odometry.status, (FIRST, MATCHED))
+
+    # -- maps ---------------------------------------------------------------------------------------------
+
+    def _scan_normals(self, s: int) -> FloatArray:
+        n = self._normals.get(s)
+        if n is None:
+            n = scan_normals(self.odo.points_base[s], max_gap_m=max(0.3, 6 * self.odo_cfg.resolution_m))
+            self._normals[s] = n
+        return n
+
+    def _scans_between(self, k_first: int, k_last: int) -> NDArray[np.int64]:
+        """Scan indices from keyframe ``k_first`` to the scan before keyframe ``k_last + 1``."""
+        k_first = max(k_first, 0)
+        k_last = min(k_last, len(self.kf) - 1)
+        start = self.kf[k_first]
+        stop = self.kf[k_last + 1] if k_last + 1 < len(self.kf) else len(self.odo.poses_xytheta)
+        scans = np.arange(start, stop)
+        return scans[self._usable[scans]]
+
+    def _points_in_frame(self, anchor_scan: int, scans: NDArray[np.int64], normals: bool):
+        """Points, normals (or None) and beam origins of ``scans`` in the frame of ``anchor_scan`` through
+        the odometry, each (P, 2)."""
+        if len(scans) == 0:
+            return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
+        rel = se2.between(self.odo.poses_xytheta[anchor_scan], self.odo.poses_xytheta[scans])
+        counts = np.array([self.odo.points_base[s].shape[0] for s in scans])
+        pts = np.concatenate([self.odo.points_base[s] for s in scans])
+        per_point = np.repeat(rel, counts, axis=0)
+        c, s_ = np.cos(per_point[:, 2]), np.sin(per_point[:, 2])
+
+        def rotate(v: FloatArray) -> FloatArray:
+            return np.stack([c * v[:, 0] - s_ * v[:, 1], s_ * v[:, 0] + c * v[:, 1]], axis=1)
+
+        out = rotate(pts) + per_point[:, :2]
+        origins = se2.transform_points_each(rel, self.laser_origin_base)
+        origins = np.repeat(origins, counts, axis=0)
+        if not normals:
+            return out, None, origins
+        nrm = np.concatenate([self._scan_normals(int(s)) for s in scans])
+        return out, rotate(nrm), origins
+
+    def target_grid(self, j: int) -> PointGrid:
+        """The map around keyframe ``j`` in its frame (cached)."""
+        grid = self._targets.get(j)
+        if grid is not None:
+            self._targets.move_to_end(j)
+            return grid
+        m = self.cfg.target_keyframes
+        scans = self._scans_between(j - m, j + m)
+        pts, nrm, origins = self._points_in_frame(int(self.kf[j]), scans, normals=True)
+        keep = voxel_thin(pts, 0.5 * self.odo_cfg.resolution_m)
+        grid = PointGrid.from_points(
+            pts[keep],
+            nrm[keep],
+            resolution_m=self.odo_cfg.resolution_m,
+            radius_m=self.odo_cfg.max_correspondence_m,
+            sigma_m=self.odo_cfg.resolution_m,
+        )
+        mark_free_space(grid, origins[keep], pts[keep], self.cfg.free_space_margin_m)
+        self._targets[j] = grid
+        if len(self._targets) > 64:
+            self._targets.popitem(last=False)
+        return grid
+
+    def query_points(self, k: int) -> FloatArray:
+        """The query cloud of keyframe ``k`` in its frame, thinned."""
+        scans = self._scans_between(k - self.cfg.query_keyframes, k - 1)
+        scans = np.union1d(scans, [self.kf[k]]) if self._usable[self.kf[k]] else scans
+        pts, _, _ = self._points_in_frame(int(self.kf[k]), scans, normals=False)
+        return pts[voxel_thin(pts, self.cfg.query_voxel_m)]
+
+    # -- candidates ---------------------------------------------------------------------------------------
+
+    def candidates(self, k: int, estimate: FloatArray, cov_world: FloatArray) -> list[tuple[int, float]]:
+        """Earlier keyframes ``(j, d2)`` passing the separation and Mahalanobis gates, nearest first.
+
+        ``estimate`` (>= k+1, 3) current keyframe poses, ``cov_world`` (>= k+1, 3, 3) their world-frame
+        marginals (any value for keyframes older than the last closure is an upper bound).
+        """
+        cfg = self.cfg
+        sep = self.path_m[self.kf[k]] - self.path_m[self.kf[:k]]
+        js = np.nonzero(sep >= cfg.min_separation_m)[0]
+        if js.size == 0:
+            return []
+        dp = estimate[js, :2] - estimate[k, :2]
+        s = cov_world[js, :2, :2] + cov_world[k, :2, :2] + cfg.overlap_radius_m**2 * np.eye(2)
+        d2 = np.einsum("ni,nij,nj->n", dp, np.linalg.inv(s), dp)
+        ok = d2 <= cfg.gate_chi2
+        order = np.argsort(d2[ok])[: cfg.max_candidates]
+        return [(int(js[ok][i]), float(d2[ok][i])) for i in order]
+
+    # -- matching -----------------------------------------------------------------------------------------
+
+    def match(
+        self, k: int, j: int, estimate: FloatArray, cov_rel_world: FloatArray, query: FloatArray | None = None
+    ) -> LoopClosure:
+        """Search and verify the pose of keyframe ``k`` in the frame of keyframe ``j``.
+
+        ``cov_rel_world`` (3, 3) is the uncertainty of the relative pose (world frame), which sets the search
+        window and the consistency gate.
+        """
+        cfg = self.cfg
+        pred = se2.between(estimate[j], estimate[k])
+        # the relative uncertainty in j's frame
+        r = se2.rot3(-estimate[j, 2])
+        cov_rel = r @ cov_rel_world @ r.T
+        sig_xy = math.sqrt(max(np.linalg.eigvalsh(cov_rel[:2, :2]).max(), 0.0))
+        sig_th = math.sqrt(max(cov_rel[2, 2], 0.0))
+        win_xy = float(np.clip(cfg.window_sigmas * sig_xy, cfg.min_window_m, cfg.max_window_m))
+        win_th = float(np.clip(cfg.window_sigmas * sig_th, cfg.min_window_rad, cfg.max_window_rad))
+        pts = self.query_points(k) if query is None else query
+        grid = self.target_grid(j)
+
+        def reject(reason: str, pose=pred, score=0.0, fit=0.0, rms=math.inf, d2=math.nan) -> LoopClosure:
+            return LoopClosure(
+                k,
+                j,
+                int(self.kf[k]),
+                int(self.kf[j]),
+                pose,
+                np.zeros((3, 3)),
+                score,
+                fit,
+                rms,
+                d2,
+                False,
+                reason,
+                win_xy,
+                win_th,
+            )
+
+        if pts.shape[0] < self.odo_cfg.min_points or len(grid) < self.odo_cfg.min_points:
+            return reject("too few points")
+        found = correlative_search(
+            grid,
+            pts,
+            pred,
+            win_xy,
+            win_th,
+            self.odo_cfg.search_step_rad,
+            coarse_factor=cfg.coarse_factor,
+            coarse_theta_step_rad=cfg.coarse_step_rad,
+        )
+        al = refine_point_to_line(
+            grid,
+            pts,
+            found.pose_xytheta,
+            max_dist_m=self.odo_cfg.max_correspondence_m,
+            kernel_m=self.odo_cfg.kernel_m,
+            point_sigma_m=self.odo_cfg.point_sigma_m,
+        )
+        pose = al.pose_xytheta
+        hits, conflicts = overlap(grid, pts, pose, cfg.inlier_m)
+        fit = hits / pts.shape[0]
+        conflict = conflicts / max(hits + conflicts, 1)
+        e = pose - pred
+        e[2] = se2.wrap(e[2])
+        try:
+            d2 = float(e @ np.linalg.solve(cov_rel, e))
+        except np.linalg.LinAlgError:
+            d2 = math.inf
+        oc = self.odo_cfg
+        sigma = max(al.rms_m, oc.min_point_sigma_m) if oc.sigma_from_residuals else oc.point_sigma_m
+        info_w = al.hessian / sigma**2
+        eig = np.linalg.eigvalsh(al.hessian[:2, :2]) if al.inliers >= 3 else np.zeros(2)
+        ratio = float(eig[0] / eig[1]) if eig[1] > 0 else 0.0
+        if found.score < cfg.min_score:
+            return reject("low score", pose, found.score, fit, al.rms_m, d2)
+        if fit < cfg.min_hit_fraction:
+            return reject("low overlap", pose, found.score, fit, al.rms_m, d2)
+        if conflict > cfg.max_conflict_ratio:
+            return reject("free-space conflict", pose, found.score, fit, al.rms_m, d2)
+        if al.rms_m > cfg.max_rms_m:
+            return reject("high residual", pose, found.score, fit, al.rms_m, d2)
+        if ratio < cfg.min_eigen_ratio:
+            return reject("degenerate", pose, found.score, fit, al.rms_m, d2)
+        if d2 > cfg.consistency_chi2:
+            return reject("inconsistent", pose, found.score, fit, al.rms_m, d2)
+        # information of the relative pose, in the query's frame (GTSAM / g2o convention), scaled
+        cov_w = np.linalg.inv(info_w) * self.cov_scale
+        cov_body = se2.rotate_cov_to_body(pose, cov_w)
+        info = np.linalg.inv(cov_body)
+        return LoopClosure(
+            k,
+            j,
+            int(self.kf[k]),
+            int(self.kf[j]),
+            pose,
+            0.5 * (info + info.T),
+            found.score,
+            fit,
+            al.rms_m,
+            d2,
+            True,
+            "accepted",
+            win_xy,
+            win_th,
+        )

@@ -1,0 +1,333 @@
+"""Scan-to-submap odometry for planar scans, seeded by the wheel odometry and gated.
+
+Every scan is registered against a local map of the recent scans (Cartographer-style submaps: each inserted
+scan goes into the two active submaps; a scan is matched to the older one, which holds between
+``submap_scans`` and twice as many scans). The prediction is the previous pose composed with the wheel
+increment (or, without wheels, the previous increment). Two registrations are available:
+
+- ``point_to_line`` (default): a correlative search (Olson 2009) in a small window around the prediction,
+  then robust point-to-line Gauss-Newton with the wheel prediction as a Gaussian prior;
+- ``kiss_icp``: KISS-ICP's own voxel map and robust point-to-point ICP (its pybind core, scans lifted to
+  z = 0, no deskew), seeded by the same prediction; the submap grid is kept alongside for the gates and
+  the information matrix.
+
+Either result is rejected -- and the wheel prediction used instead, with the wheel uncertainty -- when too
+few points match or the motion deviates implausibly from the wheels. Each scan gets the covariance of its
+registration, ``(H / sigma^2 + Lambda_wheel)^-1`` (world frame), which the graph scales into factor noise.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam import geometry as se2
+from slam.config import OdometryConfig
+from slam.scan_matching import PointGrid, correlative_search, refine_point_to_line, scan_normals
+
+FloatArray = NDArray[np.float64]
+
+# status of each scan's registration
+FIRST = 0
+MATCHED = 1
+FALLBACK = 2  # registration rejected by the gates: wheel prediction used
+TOO_FEW_POINTS = 3  # not enough usable beams: wheel prediction used
+STATUS_NAMES = {FIRST: "first", MATCHED: "matched", FALLBACK: "fallback", TOO_FEW_POINTS: "too_few_points"}
+
+
+class StageBar(Protocol):
+    def advance(self, amount: int = 1) -> None: ...
+
+
+class ProgressLike(Protocol):
+    """Anything with ``stage(name, total)`` returning a context manager of a bar (pipeline.progress)."""
+
+    def stage(self, name: str, total: int | None = None): ...
+
+
+class _NullBar:
+    def advance(self, amount: int = 1) -> None:
+        pass
+
+
+@contextmanager
+def stage(progress: ProgressLike | None, name: str, total: int | None) -> Iterator[StageBar]:
+    """``progress.stage(name, total)``, or a silent bar without a progress reporter."""
+    if progress is None:
+        yield _NullBar()
+    else:
+        with progress.stage(name, total=total) as bar:
+            yield bar
+
+
+@dataclass(frozen=True)
+class OdometryResult:
+    """Per-scan output of :func:`run_odometry` (N scans).
+
+    - ``poses_xytheta`` (N, 3): base poses in the odometry frame (the wheel frame's first pose, or the
+      origin without wheels);
+    - ``cov_xytheta`` (N, 3, 3): world-frame covariance of each scan's registration against its submap
+      (unscaled ``(H / sigma^2 + Lambda)^-1``; for rejected scans, the accumulated wheel uncertainty since the
+      last registered scan);
+    - ``status`` (N,) int8: :data:`FIRST`, :data:`MATCHED`, :data:`FALLBACK`, :data:`TOO_FEW_POINTS`;
+    - ``inlier_fraction`` (N,): fraction of the scan's points matched to the submap;
+    - ``rms_m`` (N,): robust RMS of the point-to-line residuals at the solution (NaN if not registered);
+    - ``points_base`` (N,) list of (P_i, 2) base-frame points used (for loop closure);
+    - ``timings_s``: wall time per sub-stage.
+    """
+
+    poses_xytheta: FloatArray
+    cov_xytheta: FloatArray
+    status: NDArray[np.int8]
+    inlier_fraction: FloatArray
+    rms_m: FloatArray
+    points_base: list[FloatArray]
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def status_counts(self) -> dict[str, int]:
+        """Number of scans per status name."""
+        return {name: int(np.sum(self.status == code)) for code, name in STATUS_NAMES.items()}
+
+
+def scan_points_base(
+    ranges_m: NDArray,
+    angles_rad: NDArray,
+    range_min_m: float,
+    range_max_m: float,
+    laser_in_base_xytheta: FloatArray,
+    min_range_m: float,
+    max_range_m: float,
+) -> FloatArray:
+    """(P, 2) base-frame end points of the valid returns, in beam order.
+
+    A return is valid when finite, ``>= max(range_min, min_range_m)`` and ``< min(range_max, max_range_m)``
+    (no-return beams carry no end point, SPEC section 2).
+    """
+    r = np.asarray(ranges_m, dtype=np.float64)
+    a = np.asarray(angles_rad, dtype=np.float64)
+    lo = max(float(range_min_m), min_range_m)
+    hi = min(float(range_max_m), max_range_m)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(r) & (r >= lo) & (r < hi)
+    r, a = r[ok], a[ok]
+    pts = np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+    return se2.transform_points(np.asarray(laser_in_base_xytheta, dtype=np.float64), pts)
+
+
+def wheel_increment_cov(inc_xytheta: FloatArray, cfg: OdometryConfig) -> FloatArray:
+    """(3, 3) child-frame covariance of one wheel increment: sigmas grow with travel and turn."""
+    d = math.hypot(inc_xytheta[0], inc_xytheta[1])
+    s_xy = cfg.wheel_sigma_xy_m + cfg.wheel_sigma_xy_per_m * d
+    s_th = cfg.wheel_sigma_theta_rad + cfg.wheel_sigma_theta_per_rad * abs(inc_xytheta[2])
+    return np.diag([s_xy**2, s_xy**2, s_th**2])
+
+
+class _Submaps:
+    """Two overlapping submap grids; scans are matched against the older one. Grids are recycled."""
+
+    def __init__(self, cfg: OdometryConfig) -> None:
+        self.cfg = cfg
+        self.grids: list[PointGrid] = []
+        self.counts: list[int] = []
+        self._pool: list[PointGrid] = []
+        self.half_size_m = cfg.max_range_m + 5.0
+
+    @property
+    def target(self) -> PointGrid | None:
+        return self.grids[0] if self.grids else None
+
+    def insert(self, pose: FloatArray, points_base: FloatArray, normals_base: FloatArray) -> None:
+        k = self.cfg.submap_scans
+        if not self.grids or self.counts[-1] >= k:
+            if self._pool:
+                grid = self._pool.pop()
+                grid.reset(pose[:2] - 0.5 * grid.shape[0] * grid.resolution_m)
+            else:
+                grid = PointGrid.around(
+                    pose[:2],
+                    self.half_size_m,
+                    resolution_m=self.cfg.resolution_m,
+                    radius_m=self.cfg.max_correspondence_m,
+                    sigma_m=self.cfg.resolution_m,
+                )
+            self.grids.append(grid)
+            self.counts.append(0)
+        rot = se2.rot3(pose[2])[:2, :2]
+        pts_w = points_base @ rot.T + pose[:2]
+        nrm_w = normals_base @ rot.T
+        for grid in self.grids:
+            grid.insert(pts_w, nrm_w)
+        self.counts = [c + 1 for c in self.counts]
+        if self.counts[0] >= 2 * k and len(self.grids) > 1:
+            self._pool.append(self.grids.pop(0))
+            self.counts.pop(0)
+
+
+class _KissRegistration:
+    """KISS-ICP's voxel map and registration driven directly (pybind core), 2D poses in and out."""
+
+    def __init__(self, cfg: OdometryConfig) -> None:
+        from kiss_icp.pybind import kiss_icp_pybind as kiss
+
+        self._kiss = kiss
+        self.cfg = cfg
+        self.map = kiss._VoxelHashMap(
+            voxel_size=cfg.voxel_size_m, max_distance=cfg.max_range_m, max_points_per_voxel=20
+        )
+        self.reg = kiss._Registration(max_num_iterations=500, convergence_criterion=1e-4, max_num_threads=1)
+
+    @staticmethod
+    def _t(pose: FloatArray) -> FloatArray:
+        t = np.eye(4)
+        t[:2, :2] = se2.rot3(pose[2])[:2, :2]
+        t[:2, 3] = pose[:2]
+        return t
+
+    def _lift(self, points_base: FloatArray):
+        pts = np.zeros((points_base.shape[0], 3))
+        pts[:, :2] = points_base
+        return self._kiss._Vector3dVector(pts)
+
+    def align(self, points_base: FloatArray, guess: FloatArray) -> FloatArray:
+        t = np.asarray(
+            self.reg._align_points_to_map(
+                points=self._lift(points_base),
+                voxel_map=self.map,
+                initial_guess=self._t(guess),
+                max_correspondance_distance=3.0 * self.cfg.voxel_size_m,
+                kernel=self.cfg.voxel_size_m,
+            )
+        )
+        return np.array([t[0, 3], t[1, 3], math.atan2(t[1, 0], t[0, 0])])
+
+    def insert(self, pose: FloatArray, points_base: FloatArray) -> None:
+        self.map._update(self._lift(points_base), self._t(pose))
+
+
+def run_odometry(
+    points_base: list[FloatArray],
+    wheel_poses_xytheta: FloatArray | None,
+    cfg: OdometryConfig,
+    progress: ProgressLike | None = None,
+) -> OdometryResult:
+    """Register every scan (list of (P_i, 2) base-frame points, in scan order) against its submap.
+
+    ``wheel_poses_xytheta`` (N, 3): the wheel odometry at each scan, or None. Returns an
+    :class:`OdometryResult`.
+    """
+    n = len(points_base)
+    poses = np.zeros((n, 3))
+    covs = np.zeros((n, 3, 3))
+    status = np.zeros(n, dtype=np.int8)
+    inliers = np.zeros(n)
+    rms = np.full(n, np.nan)
+    submaps = _Submaps(cfg)
+    kiss = _KissRegistration(cfg) if cfg.matcher == "kiss_icp" else None
+    t_match = 0.0
+    t_insert = 0.0
+    t_normals = 0.0
+    if wheel_poses_xytheta is not None:
+        wheel = np.asarray(wheel_poses_xytheta, dtype=np.float64)
+        wheel_inc = se2.between(wheel[:-1], wheel[1:])
+        poses[0] = wheel[0]
+    else:
+        wheel_inc = None
+    last_inc = np.zeros(3)
+    last_insert: FloatArray | None = None
+    chunk = max(1, n // 200)
+    with stage(progress, "odometry", n) as bar:
+        for i in range(n):
+            pts = points_base[i]
+            if i > 0:
+                inc = wheel_inc[i - 1] if wheel_inc is not None else last_inc
+                pred = se2.compose(poses[i - 1], inc)
+                cov_inc = wheel_increment_cov(inc, cfg)
+                if wheel_inc is None:
+                    cov_inc = np.diag([cfg.no_wheels_window_m**2] * 2 + [cfg.no_wheels_window_rad**2])
+                cov_pred_w = se2.rotate_cov_to_world(pred, cov_inc)
+                target = submaps.target
+                accepted = False
+                if target is not None and pts.shape[0] >= cfg.min_points:
+                    t0 = time.perf_counter()
+                    prior_info = np.linalg.inv(cov_pred_w)
+                    if wheel_inc is None:  # a constant-velocity guess: search wider
+                        window_m = max(cfg.search_window_m, cfg.no_wheels_window_m)
+                        window_rad = max(cfg.search_window_rad, cfg.no_wheels_window_rad)
+                    else:
+                        window_m = cfg.search_window_m
+                        window_rad = cfg.search_window_rad + 0.3 * abs(inc[2])
+                    if kiss is not None:
+                        start = kiss.align(pts, pred)
+                    else:
+                        start = correlative_search(
+                            target, pts, pred, window_m, window_rad, cfg.search_step_rad
+                        ).pose_xytheta
+                    al = refine_point_to_line(
+                        target,
+                        pts,
+                        start,
+                        max_dist_m=cfg.max_correspondence_m,
+                        kernel_m=cfg.kernel_m,
+                        point_sigma_m=cfg.point_sigma_m,
+                        prior_xytheta=pred,
+                        prior_information=prior_info,
+                        max_iterations=0 if kiss is not None else 30,
+                    )
+                    pose = start if kiss is not None else al.pose_xytheta
+                    frac = al.inliers / pts.shape[0]
+                    dev = se2.between(pred, pose)
+                    accepted = (
+                        frac >= cfg.min_inlier_fraction
+                        and math.hypot(dev[0], dev[1]) <= max(cfg.gate_xy_m, window_m)
+                        and abs(dev[2]) <= max(cfg.gate_theta_rad, window_rad)
+                    )
+                    t_match += time.perf_counter() - t0
+                    inliers[i] = frac
+                    rms[i] = al.rms_m
+                if accepted:
+                    poses[i] = pose
+                    sigma = (
+                        max(al.rms_m, cfg.min_point_sigma_m)
+                        if cfg.sigma_from_residuals
+                        else cfg.point_sigma_m
+                    )
+                    covs[i] = np.linalg.inv(al.hessian / sigma**2 + prior_info)
+                    status[i] = MATCHED
+                else:
+                    poses[i] = pred
+                    covs[i] = se2.rotate_cov_to_world(
+                        pred,
+                        se2.compose_cov_body(se2.rotate_cov_to_body(poses[i - 1], covs[i - 1]), inc, cov_inc),
+                    )
+                    status[i] = FALLBACK if pts.shape[0] >= cfg.min_points else TOO_FEW_POINTS
+                last_inc = se2.between(poses[i - 1], poses[i])
+            else:
+                status[i] = FIRST if pts.shape[0] >= cfg.min_points else TOO_FEW_POINTS
+            # insert registered scans that moved enough into the submaps
+            if status[i] in (FIRST, MATCHED) and (
+                last_insert is None
+                or math.hypot(*(poses[i, :2] - last_insert[:2])) >= cfg.insert_distance_m
+                or abs(se2.wrap(poses[i, 2] - last_insert[2])) >= cfg.insert_rotation_rad
+            ):
+                t0 = time.perf_counter()
+                nrm = scan_normals(pts, max_gap_m=max(0.3, 6 * cfg.resolution_m))
+                t_normals += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                submaps.insert(poses[i], pts, nrm)
+                if kiss is not None:
+                    kiss.insert(poses[i], pts)
+                t_insert += time.perf_counter() - t0
+                last_insert = poses[i].copy()
+            if (i + 1) % chunk == 0:
+                bar.advance(chunk)
+        if n % chunk:
+            bar.advance(n % chunk)
+    timings = {"odometry_match_s": t_match, "odometry_insert_s": t_insert, "odometry_normals_s": t_normals}
+    return OdometryResult(poses, covs, status, inliers, rms, points_base, timings)

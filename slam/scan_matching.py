@@ -1,0 +1,720 @@
+"""2D scan matching against a point map on a grid: correlative search and point-to-line Gauss-Newton.
+
+A :class:`PointGrid` stores, for every cell of a regular grid, the index of the nearest map point within a
+radius (so a nearest-neighbour query is one array lookup) and a smooth score ``exp(-d^2 / 2 sigma^2)`` of the
+distance ``d`` from the cell centre to that point. On it:
+
+- :func:`correlative_search` (Olson, "Real-time correlative scan matching", ICRA 2009): the exhaustive
+  search of a window of poses maximising the summed score of the transformed scan points; coarse-to-fine
+  for large windows (a max-pooled score grid bounds the fine score, then the best coarse cells are refined).
+- :func:`refine_point_to_line`: robust (Cauchy) Gauss-Newton on point-to-line residuals ``n_j . (R p_i + t -
+  m_j)`` with an optional Gaussian prior on the pose (the wheel odometry), returning the Hessian that is
+  the information of the alignment.
+
+All hot loops are numba; points are (P, 2) float64 arrays.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import maximum_filter
+
+FloatArray = NDArray[np.float64]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Point normals
+
+
+@nb.njit(cache=True)
+def _scan_normals(points: FloatArray, half_window: int, max_gap_m: float, max_flatness: float) -> FloatArray:
+    p = points.shape[0]
+    normals = np.full((p, 2), np.nan)
+    for i in range(p):
+        sx = 0.0
+        sy = 0.0
+        cnt = 0
+        lo = max(0, i - half_window)
+        hi = min(p, i + half_window + 1)
+        for j in range(lo, hi):
+            dx = points[j, 0] - points[i, 0]
+            dy = points[j, 1] - points[i, 1]
+            if dx * dx + dy * dy <= max_gap_m * max_gap_m:
+                sx += points[j, 0]
+                sy += points[j, 1]
+                cnt += 1
+        if cnt < 3:
+            continue
+        mx = sx / cnt
+        my = sy / cnt
+        cxx = 0.0
+        cxy = 0.0
+        cyy = 0.0
+        for j in range(lo, hi):
+            dx = points[j, 0] - points[i, 0]
+            dy = points[j, 1] - points[i, 1]
+            if dx * dx + dy * dy <= max_gap_m * max_gap_m:
+                ex = points[j, 0] - mx
+                ey = points[j, 1] - my
+                cxx += ex * ex
+                cxy += ex * ey
+                cyy += ey * ey
+        # eigen-decomposition of [[cxx, cxy], [cxy, cyy]]
+        tr = cxx + cyy
+        det = cxx * cyy - cxy * cxy
+        disc = math.sqrt(max(tr * tr / 4.0 - det, 0.0))
+        lmax = tr / 2.0 + disc
+        lmin = tr / 2.0 - disc
+        if lmax <= 0.0 or lmin > max_flatness * lmax:
+            continue
+        # eigenvector of lmin
+        if abs(cxy) > 1e-12:
+            nx = lmin - cyy
+            ny = cxy
+        elif cxx <= cyy:
+            nx = 1.0
+            ny = 0.0
+        else:
+            nx = 0.0
+            ny = 1.0
+        norm = math.sqrt(nx * nx + ny * ny)
+        normals[i, 0] = nx / norm
+        normals[i, 1] = ny / norm
+    return normals
+
+
+def scan_normals(
+    points_xy: FloatArray, half_window: int = 2, max_gap_m: float = 0.3, max_flatness: float = 0.2
+) -> FloatArray:
+    """(P, 2) unit normals of ordered scan points (NaN where the neighbourhood is not line-like).
+
+    The normal of point ``i`` is the direction of least spread of its neighbours ``i-w..i+w`` closer than
+    ``max_gap_m``; at least 3 neighbours and ``lambda_min <= max_flatness * lambda_max`` are required.
+    """
+    pts = np.ascontiguousarray(points_xy, dtype=np.float64)
+    return _scan_normals(pts, int(half_window), float(max_gap_m), float(max_flatness))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The grid
+
+
+@nb.njit(cache=True)
+def _insert_points(
+    nearest: NDArray[np.int32],
+    d2: NDArray[np.float32],
+    score: NDArray[np.float32],
+    points: FloatArray,
+    first_index: int,
+    x0: float,
+    y0: float,
+    res: float,
+    radius: float,
+    sigma: float,
+    touched: NDArray[np.int64],
+) -> None:
+    h, w = nearest.shape
+    rc = math.ceil(radius / res)
+    r2 = radius * radius
+    inv2s2 = 1.0 / (2.0 * sigma * sigma)
+    for k in range(points.shape[0]):
+        px = points[k, 0]
+        py = points[k, 1]
+        ix = math.floor((px - x0) / res)
+        iy = math.floor((py - y0) / res)
+        if ix + rc < 0 or iy + rc < 0 or ix - rc >= w or iy - rc >= h:
+            continue
+        touched[0] = min(touched[0], max(0, iy - rc))
+        touched[1] = max(touched[1], min(h, iy + rc + 1))
+        touched[2] = min(touched[2], max(0, ix - rc))
+        touched[3] = max(touched[3], min(w, ix + rc + 1))
+        for jy in range(max(0, iy - rc), min(h, iy + rc + 1)):
+            cy = y0 + (jy + 0.5) * res - py
+            for jx in range(max(0, ix - rc), min(w, ix + rc + 1)):
+                cx = x0 + (jx + 0.5) * res - px
+                dd = cx * cx + cy * cy
+                if dd <= r2 and dd < d2[jy, jx]:
+                    d2[jy, jx] = dd
+                    nearest[jy, jx] = first_index + k
+                    score[jy, jx] = math.exp(-dd * inv2s2)
+
+
+class PointGrid:
+    """Map points on a fixed grid: nearest-point index and correlative score per cell; points can be added.
+
+    ``origin_xy_m`` is the lower-left corner of cell (0, 0); row index = y. ``nearest`` (H, W) int32 is -1
+    where no map point lies within ``radius_m`` of the cell centre; ``score`` (H, W) float32 is
+    ``exp(-d^2 / (2 sigma^2))`` of the distance ``d`` from the cell centre to the nearest point (0 beyond
+    the radius). Inserting points updates only the cells near them. Points outside the grid are kept in
+    ``points_xy`` but influence no cell.
+    """
+
+    def __init__(
+        self,
+        origin_xy_m: FloatArray,
+        shape: tuple[int, int],
+        resolution_m: float = 0.05,
+        radius_m: float = 0.3,
+        sigma_m: float = 0.05,
+    ) -> None:
+        self.origin_xy_m = np.asarray(origin_xy_m, dtype=np.float64)
+        self.resolution_m = float(resolution_m)
+        self.radius_m = float(radius_m)
+        self.sigma_m = float(sigma_m)
+        self.nearest = np.full(shape, -1, dtype=np.int32)
+        self._d2 = np.full(shape, np.inf, dtype=np.float32)
+        self.score = np.zeros(shape, dtype=np.float32)
+        self._points = np.empty((1024, 2))
+        self._normals = np.empty((1024, 2))
+        self._count = 0
+        self._coarse: dict[int, NDArray[np.float32]] = {}
+        self.free: NDArray[np.bool_] | None = None  # cells seen free by the map's beams (optional)
+        # row/column bounds [r0, r1) x [c0, c1) of the cells ever written, so a reset touches only those
+        self._touched = np.array([shape[0], 0, shape[1], 0], dtype=np.int64)
+
+    def reset(self, origin_xy_m: FloatArray) -> None:
+        """Empty the grid and move it to a new origin, reusing its memory (cheaper than a new grid)."""
+        r0, r1, c0, c1 = (int(v) for v in self._touched)
+        if r1 > r0 and c1 > c0:
+            self.nearest[r0:r1, c0:c1] = -1
+            self._d2[r0:r1, c0:c1] = np.inf
+            self.score[r0:r1, c0:c1] = 0.0
+        self._touched[:] = (self.shape[0], 0, self.shape[1], 0)
+        self.origin_xy_m = np.asarray(origin_xy_m, dtype=np.float64).copy()
+        self._count = 0
+        self._coarse.clear()
+        self.free = None
+
+    @classmethod
+    def around(
+        cls,
+        center_xy_m: FloatArray,
+        half_size_m: float,
+        resolution_m: float = 0.05,
+        radius_m: float = 0.3,
+        sigma_m: float = 0.05,
+    ) -> PointGrid:
+        """A square grid of side ``2 * half_size_m`` centred on ``center_xy_m``."""
+        n = math.ceil(2.0 * half_size_m / resolution_m)
+        origin = np.asarray(center_xy_m, dtype=np.float64)[:2] - 0.5 * n * resolution_m
+        return cls(origin, (n, n), resolution_m, radius_m, sigma_m)
+
+    @classmethod
+    def from_points(
+        cls,
+        points_xy: FloatArray,
+        normals_xy: FloatArray,
+        resolution_m: float = 0.05,
+        radius_m: float = 0.3,
+        sigma_m: float = 0.05,
+        margin_m: float = 1.0,
+    ) -> PointGrid:
+        """A grid over the points' bounding box plus ``margin_m``, holding the points."""
+        pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+        lo = pts.min(axis=0) if pts.shape[0] else np.zeros(2)
+        hi = pts.max(axis=0) if pts.shape[0] else np.zeros(2)
+        w = math.ceil((hi[0] - lo[0] + 2 * margin_m) / resolution_m) + 1
+        h = math.ceil((hi[1] - lo[1] + 2 * margin_m) / resolution_m) + 1
+        grid = cls(lo - margin_m, (h, w), resolution_m, radius_m, sigma_m)
+        grid.insert(pts, normals_xy)
+        return grid
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.nearest.shape  # type: ignore[return-value]
+
+    @property
+    def points_xy(self) -> FloatArray:
+        """(M, 2) the map points (a view)."""
+        return self._points[: self._count]
+
+    @property
+    def normals_xy(self) -> FloatArray:
+        """(M, 2) their unit normals, NaN where unknown (a view)."""
+        return self._normals[: self._count]
+
+    def __len__(self) -> int:
+        return self._count
+
+    def insert(self, points_xy: FloatArray, normals_xy: FloatArray) -> None:
+        """Add (P, 2) world points with their (P, 2) normals."""
+        pts = np.ascontiguousarray(points_xy, dtype=np.float64).reshape(-1, 2)
+        nrm = np.ascontiguousarray(normals_xy, dtype=np.float64).reshape(-1, 2)
+        need = self._count + pts.shape[0]
+        if need > self._points.shape[0]:
+            cap = max(need, 2 * self._points.shape[0])
+            for name in ("_points", "_normals"):
+                old = getattr(self, name)
+                new = np.empty((cap, 2))
+                new[: self._count] = old[: self._count]
+                setattr(self, name, new)
+        self._points[self._count : need] = pts
+        self._normals[self._count : need] = nrm
+        _insert_points(
+            self.nearest,
+            self._d2,
+            self.score,
+            pts,
+            self._count,
+            float(self.origin_xy_m[0]),
+            float(self.origin_xy_m[1]),
+            self.resolution_m,
+            self.radius_m,
+            self.sigma_m,
+            self._touched,
+        )
+        self._count = need
+        self._coarse.clear()
+
+    def coarse_score(self, factor: int) -> NDArray[np.float32]:
+        """The score max-pooled over ``factor + 1`` cells (cached until the next insertion)."""
+        out = self._coarse.get(factor)
+        if out is None:
+            out = maximum_filter(self.score, size=factor + 1, mode="constant", cval=0.0)
+            self._coarse[factor] = out
+        return out
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Correlative search
+
+
+@nb.njit(cache=True)
+def _csm(
+    score: NDArray[np.float32],
+    x0: float,
+    y0: float,
+    res: float,
+    points: FloatArray,
+    cx: float,
+    cy: float,
+    ctheta: float,
+    n_lin: int,
+    lin_step_cells: int,
+    n_ang: int,
+    ang_step: float,
+    top_k: int,
+):
+    """Exhaustive search; returns the ``top_k`` best (score, x, y, theta) rows, best first."""
+    h, w = score.shape
+    p = points.shape[0]
+    best = np.full((top_k, 4), -1.0)
+    ixs = np.empty(p, dtype=np.int64)
+    iys = np.empty(p, dtype=np.int64)
+    for a in range(-n_ang, n_ang + 1):
+        th = ctheta + a * ang_step
+        c = math.cos(th)
+        s = math.sin(th)
+        for k in range(p):
+            qx = c * points[k, 0] - s * points[k, 1] + cx
+            qy = s * points[k, 0] + c * points[k, 1] + cy
+            ixs[k] = math.floor((qx - x0) / res)
+            iys[k] = math.floor((qy - y0) / res)
+        for dyi in range(-n_lin, n_lin + 1):
+            dy = dyi * lin_step_cells
+            for dxi in range(-n_lin, n_lin + 1):
+                dx = dxi * lin_step_cells
+                tot = 0.0
+                for k in range(p):
+                    jx = ixs[k] + dx
+                    jy = iys[k] + dy
+                    if 0 <= jx < w and 0 <= jy < h:
+                        tot += score[jy, jx]
+                if tot > best[top_k - 1, 0]:
+                    # insert sorted
+                    pos = top_k - 1
+                    while pos > 0 and best[pos - 1, 0] < tot:
+                        best[pos, :] = best[pos - 1, :]
+                        pos -= 1
+                    best[pos, 0] = tot
+                    best[pos, 1] = cx + dx * res
+                    best[pos, 2] = cy + dy * res
+                    best[pos, 3] = th
+    return best
+
+
+@dataclass(frozen=True)
+class SearchResult:
+    """Best pose of a correlative search and its mean per-point score in [0, 1]."""
+
+    pose_xytheta: FloatArray
+    score: float
+
+
+def correlative_search(
+    grid: PointGrid,
+    points_xy: FloatArray,
+    center_xytheta: FloatArray,
+    window_xy_m: float,
+    window_theta_rad: float,
+    theta_step_rad: float | None = None,
+    coarse_factor: int = 4,
+    coarse_theta_step_rad: float | None = None,
+    coarse_candidates: int = 8,
+) -> SearchResult:
+    """The pose within ``center +- window`` that maximises the mean score of the transformed points.
+
+    Translations are searched on the grid's cells and rotations at ``theta_step_rad`` (default: the step
+    that moves the farthest point by about one cell). Windows wider than ``coarse_factor`` cells are
+    searched coarse-to-fine: a max-pooled grid (an upper bound of the fine score for translations within
+    half a coarse step) scores translations ``coarse_factor`` cells and rotations ``coarse_theta_step_rad``
+    apart, and the ``coarse_candidates`` best are searched at full resolution around them.
+    """
+    pts = np.ascontiguousarray(points_xy, dtype=np.float64)
+    n = max(pts.shape[0], 1)
+    res = grid.resolution_m
+    if theta_step_rad is None:
+        r_max = float(np.max(np.hypot(pts[:, 0], pts[:, 1]))) if pts.shape[0] else 1.0
+        theta_step_rad = float(np.clip(res / max(r_max, 1e-3), math.radians(0.05), math.radians(1.0)))
+    n_lin = math.ceil(window_xy_m / res)
+    n_ang = math.ceil(window_theta_rad / theta_step_rad)
+    c = np.asarray(center_xytheta, dtype=np.float64)
+    ox, oy = float(grid.origin_xy_m[0]), float(grid.origin_xy_m[1])
+    f = int(coarse_factor)
+    if f <= 1 or n_lin <= f:
+        best = _csm(grid.score, ox, oy, res, pts, c[0], c[1], c[2], n_lin, 1, n_ang, theta_step_rad, 1)
+        return SearchResult(best[0, 1:].copy(), float(best[0, 0]) / n)
+    coarse = grid.coarse_score(f)
+    n_lin_c = math.ceil(n_lin / f)
+    ang_c = (
+        theta_step_rad * f if coarse_theta_step_rad is None else max(coarse_theta_step_rad, theta_step_rad)
+    )
+    n_ang_c = math.ceil(window_theta_rad / ang_c)
+    cand = _csm(coarse, ox, oy, res, pts, c[0], c[1], c[2], n_lin_c, f, n_ang_c, ang_c, coarse_candidates)
+    best_pose = c.copy()
+    best_score = -1.0
+    half = math.ceil(f / 2)
+    n_ang_f = math.ceil(0.5 * ang_c / theta_step_rad)
+    for row in cand:
+        if row[0] < 0 or row[0] <= best_score:
+            continue
+        fine = _csm(grid.score, ox, oy, res, pts, row[1], row[2], row[3], half, 1, n_ang_f, theta_step_rad, 1)
+        if fine[0, 0] > best_score:
+            best_score = float(fine[0, 0])
+            best_pose = fine[0, 1:].copy()
+    return SearchResult(best_pose, best_score / n)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Point-to-line Gauss-Newton
+
+
+@nb.njit(cache=True)
+def _accumulate(
+    nearest: NDArray[np.int32],
+    x0: float,
+    y0: float,
+    res: float,
+    map_pts: FloatArray,
+    map_nrm: FloatArray,
+    points: FloatArray,
+    pose: FloatArray,
+    max_dist: float,
+    kernel: float,
+):
+    h, w = nearest.shape
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    hess = np.zeros((3, 3))
+    grad = np.zeros(3)
+    n_in = 0
+    sum_r2 = 0.0
+    sum_w = 0.0
+    cost = 0.0
+    md2 = max_dist * max_dist
+    for k in range(points.shape[0]):
+        rx = c * points[k, 0] - s * points[k, 1]
+        ry = s * points[k, 0] + c * points[k, 1]
+        qx = rx + pose[0]
+        qy = ry + pose[1]
+        jx = math.floor((qx - x0) / res)
+        jy = math.floor((qy - y0) / res)
+        if jx < 0 or jy < 0 or jx >= w or jy >= h:
+            continue
+        m = nearest[jy, jx]
+        if m < 0:
+            continue
+        nx = map_nrm[m, 0]
+        ny = map_nrm[m, 1]
+        if nx != nx:  # NaN normal
+            continue
+        ex = qx - map_pts[m, 0]
+        ey = qy - map_pts[m, 1]
+        if ex * ex + ey * ey > md2:
+            continue
+        r = nx * ex + ny * ey
+        # Cauchy weight
+        u = r / kernel
+        wt = 1.0 / (1.0 + u * u)
+        j0 = nx
+        j1 = ny
+        j2 = nx * (-ry) + ny * rx
+        hess[0, 0] += wt * j0 * j0
+        hess[0, 1] += wt * j0 * j1
+        hess[0, 2] += wt * j0 * j2
+        hess[1, 1] += wt * j1 * j1
+        hess[1, 2] += wt * j1 * j2
+        hess[2, 2] += wt * j2 * j2
+        grad[0] += wt * j0 * r
+        grad[1] += wt * j1 * r
+        grad[2] += wt * j2 * r
+        n_in += 1
+        sum_r2 += wt * r * r
+        sum_w += wt
+        cost += 0.5 * kernel * kernel * math.log1p(u * u)
+    hess[1, 0] = hess[0, 1]
+    hess[2, 0] = hess[0, 2]
+    hess[2, 1] = hess[1, 2]
+    return hess, grad, n_in, sum_r2, sum_w, cost
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """Result of :func:`refine_point_to_line`.
+
+    ``hessian`` (3, 3) is ``sum_i w_i J_i^T J_i`` of the point-to-line residuals at the solution (world
+    frame, order x, y, theta; units 1, m, m^2), without the prior; divide by the point noise variance to get
+    the information of the scan alone. ``inliers`` counts points with a correspondence, ``rms_m`` is the
+    weighted residual RMS.
+    """
+
+    pose_xytheta: FloatArray
+    hessian: FloatArray
+    inliers: int
+    rms_m: float
+    iterations: int
+
+
+@nb.njit(cache=True)
+def _gauss_newton(
+    nearest: NDArray[np.int32],
+    x0: float,
+    y0: float,
+    res: float,
+    map_pts: FloatArray,
+    map_nrm: FloatArray,
+    points: FloatArray,
+    pose0: FloatArray,
+    max_dist: float,
+    kernel: float,
+    inv_s2: float,
+    prior: FloatArray,
+    prior_info: FloatArray,
+    max_iterations: int,
+    tolerance: float,
+):
+    x = pose0.copy()
+    iterations = 0
+    for _ in range(max_iterations):
+        iterations += 1
+        hess, grad, n_in, _, _, _ = _accumulate(
+            nearest, x0, y0, res, map_pts, map_nrm, points, x, max_dist, kernel
+        )
+        a = hess * inv_s2 + prior_info
+        e0 = x[0] - prior[0]
+        e1 = x[1] - prior[1]
+        e2 = x[2] - prior[2]
+        e2 = (e2 + np.pi) % (2.0 * np.pi) - np.pi
+        b = grad * inv_s2
+        for r in range(3):
+            b[r] += prior_info[r, 0] * e0 + prior_info[r, 1] * e1 + prior_info[r, 2] * e2
+        for r in range(3):
+            a[r, r] += 1e-9
+        if n_in < 3 and prior_info[0, 0] == 0.0:
+            break
+        step = -np.linalg.solve(a, b)
+        if not (np.isfinite(step[0]) and np.isfinite(step[1]) and np.isfinite(step[2])):
+            break
+        x += step
+        x[2] = (x[2] + np.pi) % (2.0 * np.pi) - np.pi
+        if abs(step[0]) + abs(step[1]) < tolerance and abs(step[2]) < tolerance:
+            break
+    hess, _, n_in, sum_r2, sum_w, _ = _accumulate(
+        nearest, x0, y0, res, map_pts, map_nrm, points, x, max_dist, kernel
+    )
+    rms = math.sqrt(sum_r2 / sum_w) if sum_w > 0 else np.inf
+    return x, hess, n_in, rms, iterations
+
+
+def refine_point_to_line(
+    grid: PointGrid,
+    points_xy: FloatArray,
+    initial_xytheta: FloatArray,
+    max_dist_m: float = 0.3,
+    kernel_m: float = 0.05,
+    point_sigma_m: float = 0.05,
+    prior_xytheta: FloatArray | None = None,
+    prior_information: FloatArray | None = None,
+    max_iterations: int = 30,
+    tolerance: float = 1e-6,
+) -> Alignment:
+    """Robust Gauss-Newton on point-to-line residuals, from ``initial_xytheta``.
+
+    Minimises ``sum_i rho(n_j . (R p_i + t - m_j)) / sigma^2 + (x - x_prior)^T Lambda (x - x_prior)`` with a
+    Cauchy ``rho`` of scale ``kernel_m``; ``m_j`` is the map point nearest to the transformed point (within
+    ``max_dist_m``) and ``n_j`` its normal. The prior (e.g. the wheel-odometry prediction, ``Lambda`` its
+    (3, 3) world-frame information) keeps directions the scan does not constrain (a corridor's axis) where
+    the wheels put them.
+    """
+    pts = np.ascontiguousarray(points_xy, dtype=np.float64)
+    x0 = np.asarray(initial_xytheta, dtype=np.float64)
+    if prior_xytheta is None or prior_information is None:
+        prior = np.zeros(3)
+        info = np.zeros((3, 3))
+    else:
+        prior = np.asarray(prior_xytheta, dtype=np.float64)
+        info = np.ascontiguousarray(prior_information, dtype=np.float64)
+    x, hess, n_in, rms, it = _gauss_newton(
+        grid.nearest,
+        float(grid.origin_xy_m[0]),
+        float(grid.origin_xy_m[1]),
+        grid.resolution_m,
+        grid.points_xy,
+        grid.normals_xy,
+        pts,
+        x0,
+        float(max_dist_m),
+        float(kernel_m),
+        1.0 / (point_sigma_m * point_sigma_m),
+        prior,
+        info,
+        int(max_iterations),
+        float(tolerance),
+    )
+    return Alignment(x, hess, int(n_in), float(rms), int(it))
+
+
+@nb.njit(cache=True)
+def _raycast_free(
+    free: NDArray[np.bool_],
+    x0: float,
+    y0: float,
+    res: float,
+    origins: FloatArray,
+    ends: FloatArray,
+    stop_short_m: float,
+) -> None:
+    """Mark the cells crossed by each beam ``origins[i] -> ends[i]`` as free, up to ``stop_short_m`` before
+    the end point (sampled every half cell)."""
+    h, w = free.shape
+    step = 0.5 * res
+    for i in range(origins.shape[0]):
+        ox = origins[i, 0]
+        oy = origins[i, 1]
+        dx = ends[i, 0] - ox
+        dy = ends[i, 1] - oy
+        length = math.sqrt(dx * dx + dy * dy) - stop_short_m
+        if length <= 0.0:
+            continue
+        norm = math.sqrt(dx * dx + dy * dy)
+        ux = dx / norm
+        uy = dy / norm
+        n = int(length / step)
+        for k in range(n + 1):
+            t = k * step
+            jx = math.floor((ox + t * ux - x0) / res)
+            jy = math.floor((oy + t * uy - y0) / res)
+            if 0 <= jx < w and 0 <= jy < h:
+                free[jy, jx] = True
+
+
+@nb.njit(cache=True)
+def _overlap(score, free, x0, y0, res, points, pose, thr):
+    h, w = score.shape
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    hits = 0
+    conflicts = 0
+    for k in range(points.shape[0]):
+        qx = c * points[k, 0] - s * points[k, 1] + pose[0]
+        qy = s * points[k, 0] + c * points[k, 1] + pose[1]
+        jx = math.floor((qx - x0) / res)
+        jy = math.floor((qy - y0) / res)
+        if 0 <= jx < w and 0 <= jy < h:
+            if score[jy, jx] >= thr:
+                hits += 1
+            elif free[jy, jx]:
+                conflicts += 1
+    return hits, conflicts
+
+
+def mark_free_space(
+    grid: PointGrid, origins_xy: FloatArray, ends_xy: FloatArray, stop_short_m: float
+) -> None:
+    """Record the free space seen by beams ``origins -> ends`` (P, 2) in ``grid.free`` (created if absent)."""
+    if grid.free is None:
+        grid.free = np.zeros(grid.shape, dtype=np.bool_)
+    _raycast_free(
+        grid.free,
+        float(grid.origin_xy_m[0]),
+        float(grid.origin_xy_m[1]),
+        grid.resolution_m,
+        np.ascontiguousarray(origins_xy, dtype=np.float64),
+        np.ascontiguousarray(ends_xy, dtype=np.float64),
+        float(stop_short_m),
+    )
+
+
+def overlap(
+    grid: PointGrid, points_xy: FloatArray, pose_xytheta: FloatArray, inlier_m: float = 0.1
+) -> tuple[int, int]:
+    """``(hits, conflicts)`` of points at a pose: near a map point (within ``inlier_m``), or in space the
+    map's beams saw free (requires :func:`mark_free_space`). Points elsewhere are unknown to the map."""
+    if grid.free is None:
+        raise ValueError("overlap() needs the grid's free space (mark_free_space)")
+    pts = np.ascontiguousarray(points_xy, dtype=np.float64)
+    thr = math.exp(-(inlier_m**2) / (2.0 * grid.sigma_m**2))
+    hits, conflicts = _overlap(
+        grid.score,
+        grid.free,
+        float(grid.origin_xy_m[0]),
+        float(grid.origin_xy_m[1]),
+        grid.resolution_m,
+        pts,
+        np.asarray(pose_xytheta, dtype=np.float64),
+        thr,
+    )
+    return int(hits), int(conflicts)
+
+
+@nb.njit(cache=True)
+def _fitness(score: NDArray[np.float32], x0: float, y0: float, res: float, points: FloatArray, pose, thr):
+    h, w = score.shape
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    n_ok = 0
+    tot = 0.0
+    for k in range(points.shape[0]):
+        qx = c * points[k, 0] - s * points[k, 1] + pose[0]
+        qy = s * points[k, 0] + c * points[k, 1] + pose[1]
+        jx = math.floor((qx - x0) / res)
+        jy = math.floor((qy - y0) / res)
+        if 0 <= jx < w and 0 <= jy < h:
+            v = score[jy, jx]
+            tot += v
+            if v >= thr:
+                n_ok += 1
+    return n_ok, tot
+
+
+def fitness(grid: PointGrid, points_xy: FloatArray, pose_xytheta: FloatArray, inlier_m: float = 0.1) -> float:
+    """Fraction of points whose nearest map point is within ``inlier_m`` (cell-centre distance)."""
+    pts = np.ascontiguousarray(points_xy, dtype=np.float64)
+    if pts.shape[0] == 0:
+        return 0.0
+    thr = math.exp(-(inlier_m**2) / (2.0 * grid.sigma_m**2))
+    n_ok, _ = _fitness(
+        grid.score,
+        float(grid.origin_xy_m[0]),
+        float(grid.origin_xy_m[1]),
+        grid.resolution_m,
+        pts,
+        np.asarray(pose_xytheta, dtype=np.float64),
+        thr,
+    )
+    return n_ok / pts.shape[0]

@@ -1,0 +1,331 @@
+"""The SLAM stage's one entry point: :func:`run_slam` (scans + wheel odometry -> :class:`SlamResult`).
+
+Steps and their modules: scan-to-submap odometry (:mod:`slam.odometry`), keyframes by travel and rotation
+(:mod:`slam.keyframes`), odometry factors whose covariance comes from the registrations, the incremental
+pose graph with loop-closure search after every keyframe (:mod:`slam.graph`, :mod:`slam.loop_closure`),
+a final batch optimisation, marginals of every keyframe, and the pose and covariance of every scan.
+
+Covariances leaving this module are world-frame (x, y, theta) (SPEC section 2). "Before" is the odometry
+chain alone (first-order propagation of the factor covariances, equal to the marginals of the chain graph),
+"after" the optimised graph with loop closures. A scan between keyframes takes the pose of its keyframe
+composed with its odometry offset, and its covariance adds the offset's uncertainty.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from datasets.types import ScanSequence, Trajectory
+from slam import geometry as se2
+from slam.config import GraphConfig, SlamConfig
+from slam.graph import Edge, PoseGraph, edge_errors2
+from slam.keyframes import keyframe_of_scan, relative_cov_body, select_keyframes
+from slam.loop_closure import LoopCloser, LoopClosure
+from slam.odometry import ProgressLike, run_odometry, scan_points_base, stage
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SlamResult:
+    """Everything the SLAM stage produces (N scans, K keyframes).
+
+    Per scan: ``stamps_ns`` (N,), ``poses_before_xytheta`` / ``poses_after_xytheta`` (N, 3) base poses of
+    the odometry chain and of the optimised graph, ``cov_before_xytheta`` / ``cov_after_xytheta``
+    (N, 3, 3) world-frame covariances, ``odometry_status`` (N,) int8 (see :mod:`slam.odometry`).
+    Per keyframe: ``keyframe_scans`` (K,) scan indices, ``keyframe_stamps_ns`` (K,),
+    ``keyframe_cov_before`` / ``keyframe_cov_after`` (K, 3, 3) world-frame marginals.
+    ``loop_closures`` / ``rejected_loop_closures``: the verified and the refused attempts.
+    ``graph_vertices_xytheta`` (K, 3) and ``graph_edges``: the optimised pose graph (g2o export), whose
+    factor covariances include ``variance_factor``, the a-posteriori variance factor of the adjustment
+    (every factor covariance, and so every marginal, is multiplied by it; 1 when not estimated).
+    ``timings_s``: wall time per sub-stage.
+    """
+
+    stamps_ns: NDArray[np.int64]
+    poses_before_xytheta: FloatArray
+    poses_after_xytheta: FloatArray
+    cov_before_xytheta: FloatArray
+    cov_after_xytheta: FloatArray
+    odometry_status: NDArray[np.int8]
+    keyframe_scans: NDArray[np.int64]
+    keyframe_stamps_ns: NDArray[np.int64]
+    keyframe_cov_before: FloatArray
+    keyframe_cov_after: FloatArray
+    loop_closures: tuple[LoopClosure, ...]
+    rejected_loop_closures: tuple[LoopClosure, ...]
+    graph_vertices_xytheta: FloatArray
+    graph_edges: tuple[Edge, ...]
+    variance_factor: float = 1.0
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def trajectory(self, which: str = "after") -> Trajectory:
+        """The per-scan trajectory ``"before"`` or ``"after"`` loop closure, with its covariances."""
+        if which == "before":
+            return Trajectory(self.stamps_ns, self.poses_before_xytheta, "odom", self.cov_before_xytheta)
+        if which == "after":
+            return Trajectory(self.stamps_ns, self.poses_after_xytheta, "map", self.cov_after_xytheta)
+        raise ValueError(f"which must be 'before' or 'after', not {which!r}")
+
+    def summary(self) -> dict:
+        """Counts and timings (JSON-ready)."""
+        return {
+            "scans": len(self.stamps_ns),
+            "keyframes": len(self.keyframe_scans),
+            "loop_closures_accepted": len(self.loop_closures),
+            "loop_closures_rejected": len(self.rejected_loop_closures),
+            "odometry_fallbacks": int(np.sum(self.odometry_status >= 2)),
+            "timings_s": dict(self.timings_s),
+        }
+
+
+def wheel_poses_at_scans(odometry: Trajectory, stamps_ns: NDArray[np.int64]) -> FloatArray:
+    """(N, 3) wheel poses at the scan stamps: the odometry itself when it has one pose per scan at the same
+    stamps (e.g. CARMEN's per-scan odometry), else interpolated (odometry sorted by stamp first)."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    if len(odometry) == len(stamps) and np.array_equal(odometry.stamps_ns, stamps):
+        return odometry.poses_xytheta.copy()
+    order = np.argsort(odometry.stamps_ns, kind="stable")
+    if not np.all(order == np.arange(len(order))):
+        odometry = Trajectory(odometry.stamps_ns[order], odometry.poses_xytheta[order], odometry.frame_id)
+    return odometry.interpolate(stamps)
+
+
+def run_slam(
+    scans: ScanSequence,
+    odometry: Trajectory | None,
+    laser_in_base_xytheta: FloatArray,
+    config: SlamConfig | None = None,
+    progress: ProgressLike | None = None,
+) -> SlamResult:
+    """Odometry, keyframes, loop closures, pose graph and marginals for one recording.
+
+    ``scans``: the planar scans in order; ``odometry``: wheel odometry (per scan or denser; None without
+    wheels); ``laser_in_base_xytheta`` (3,): the laser's mounting on the base. Poses are of the base.
+    """
+    cfg = config or SlamConfig()
+    oc = cfg.odometry
+    gc = cfg.graph
+    timings: dict[str, float] = {}
+    n = len(scans)
+    stamps = np.asarray(scans.stamps_ns, dtype=np.int64)
+    mount = np.asarray(laser_in_base_xytheta, dtype=np.float64)
+
+    t0 = time.perf_counter()
+    points = [
+        scan_points_base(
+            scans.ranges_m[i],
+            scans.angles_rad[i],
+            scans.range_min_m[i],
+            scans.range_max_m[i],
+            mount,
+            oc.min_range_m,
+            oc.max_range_m,
+        )
+        for i in range(n)
+    ]
+    wheel = wheel_poses_at_scans(odometry, stamps) if odometry is not None and len(odometry) else None
+    timings["points_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    odo = run_odometry(points, wheel, oc, progress)
+    timings["odometry_s"] = time.perf_counter() - t0
+    timings.update(odo.timings_s)
+    poses = odo.poses_xytheta
+
+    # keyframes and their odometry factors
+    kf = select_keyframes(poses, cfg.keyframe_distance_m, cfg.keyframe_rotation_rad)
+    k_count = len(kf)
+    floor = np.diag([gc.min_sigma_xy_m**2, gc.min_sigma_xy_m**2, gc.min_sigma_theta_rad**2])
+    rel = se2.between(poses[kf[:-1]], poses[kf[1:]])
+    fac_cov = (
+        relative_cov_body(
+            poses[kf[:-1]],
+            odo.cov_xytheta[kf[:-1]],
+            poses[kf[1:]],
+            odo.cov_xytheta[kf[1:]],
+            gc.odometry_cov_scale,
+        )
+        + floor
+    )
+    cov0 = np.diag([gc.prior_sigma_xy_m**2, gc.prior_sigma_xy_m**2, gc.prior_sigma_theta_rad**2])
+
+    # incremental graph with loop-closure search after every keyframe
+    t0 = time.perf_counter()
+    t_search = 0.0
+    graph = PoseGraph()
+    graph.add_pose(poses[kf[0]])
+    graph.add_prior(0, poses[kf[0]], cov0)
+    graph.update()
+    est = np.zeros((k_count, 3))
+    est[0] = poses[kf[0]]
+    cov_w = np.zeros((k_count, 3, 3))  # world-frame marginals (unscaled) when each keyframe was added
+    cov_w[0] = cov0
+    closer = LoopCloser(odo, kf, cfg.loop_closure, oc, gc.loop_cov_scale)
+    lc = cfg.loop_closure
+    accepted: list[LoopClosure] = []
+    rejected: list[LoopClosure] = []
+    scale = 1.0  # running a-posteriori variance factor
+    last_closure_path_m = -math.inf
+    with stage(progress, "loop closure", k_count) as bar:
+        for k in range(1, k_count):
+            graph.add_pose(se2.compose(est[k - 1], rel[k - 1]))
+            graph.add_between("odometry", k - 1, k, rel[k - 1], fac_cov[k - 1])
+            graph.update()
+            est[k] = graph.estimate_of(k)
+            cov_w[k] = se2.rotate_cov_to_world(est[k], graph.marginal_body(k))
+            spaced = closer.path_m[kf[k]] - last_closure_path_m >= lc.closure_spacing_m
+            if lc.enabled and spaced:
+                ts = time.perf_counter()
+                found = []
+                query = None
+                gate_scale = max(scale, lc.search_cov_inflation)
+                for j, _d2 in closer.candidates(k, est, cov_w * gate_scale):
+                    if query is None:
+                        query = closer.query_points(k)
+                    closure = closer.match(k, j, est, (cov_w[k] + cov_w[j]) * gate_scale, query)
+                    (found if closure.accepted else rejected).append(closure)
+                    if len(found) >= lc.max_accepted_per_keyframe:
+                        break
+                t_search += time.perf_counter() - ts
+                for closure in found:
+                    graph.add_between(
+                        "loop",
+                        closure.target_keyframe,
+                        closure.query_keyframe,
+                        closure.relative_xytheta,
+                        np.linalg.inv(closure.information),
+                        robust=lc.robust_kernel,
+                        robust_width=lc.robust_kernel_width * math.sqrt(max(scale, 1.0)),
+                    )
+                if found:
+                    last_closure_path_m = closer.path_m[kf[k]]
+                    accepted.extend(found)
+                    graph.update(extra_iterations=1)
+                    est[: k + 1] = graph.estimate()
+                    cov_w[k] = se2.rotate_cov_to_world(est[k], graph.marginal_body(k))
+                    if gc.estimate_variance_factor:
+                        scale = variance_factor(est[: k + 1], graph.edges, scale, gc)[0]
+            bar.advance()
+    timings["loop_search_s"] = t_search
+    timings["graph_incremental_s"] = time.perf_counter() - t0 - t_search
+
+    # batch: re-weight every factor by the a-posteriori variance factor and solve again until it settles
+    t0 = time.perf_counter()
+    est = graph.estimate()
+    edges = list(graph.edges)
+    final = graph
+    scale = 1.0
+    inliers = np.ones(len(edges), dtype=bool)
+    for _ in range(gc.variance_factor_iterations if gc.estimate_variance_factor else 1):
+        if gc.estimate_variance_factor:
+            new_scale, inliers = variance_factor(est, edges, scale, gc)
+        else:
+            new_scale = 1.0
+        final = PoseGraph.from_edges([e if e.kind == "prior" else e.scaled(new_scale) for e in edges], est)
+        if gc.final_optimizer == "levenberg_marquardt":
+            est = final.optimize_batch(gc.max_iterations)
+        converged = abs(new_scale - scale) <= 0.02 * scale
+        scale = new_scale
+        if converged:
+            break
+    timings["graph_batch_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    with stage(progress, "marginals", None):
+        kf_cov_after_body = final.marginals_body()
+    timings["marginals_s"] = time.perf_counter() - t0
+    kf_cov_before_body = se2.propagate_chain_cov_body(rel, fac_cov * scale, cov0)
+    loop_edges = [e for e in edges if e.kind == "loop"]
+    loop_inlier = inliers[[i for i, e in enumerate(edges) if e.kind == "loop"]] if loop_edges else []
+    accepted = [
+        replace(c, information=c.information / scale, consistent=bool(ok))
+        for c, ok in zip(accepted, loop_inlier, strict=True)
+    ]
+
+    # every scan: its keyframe's pose and covariance composed with the odometry offset
+    t0 = time.perf_counter()
+    owner = keyframe_of_scan(kf, n)
+    anchor = kf[owner]
+    offset = se2.between(poses[anchor], poses)
+    off_cov = relative_cov_body(
+        poses[anchor], odo.cov_xytheta[anchor], poses, odo.cov_xytheta, gc.odometry_cov_scale * scale
+    )
+    off_cov[anchor == np.arange(n)] = 0.0
+    poses_after = se2.compose(est[owner], offset)
+    cov_before = se2.rotate_cov_to_world(
+        poses, se2.compose_cov_body(kf_cov_before_body[owner], offset, off_cov)
+    )
+    cov_after = se2.rotate_cov_to_world(
+        poses_after, se2.compose_cov_body(kf_cov_after_body[owner], offset, off_cov)
+    )
+    timings["per_scan_s"] = time.perf_counter() - t0
+    timings["total_s"] = (
+        sum(
+            timings[k]
+            for k in (
+                "points_s",
+                "odometry_s",
+                "loop_search_s",
+                "graph_incremental_s",
+                "graph_batch_s",
+                "marginals_s",
+            )
+        )
+        + timings["per_scan_s"]
+    )
+
+    return SlamResult(
+        stamps_ns=stamps,
+        poses_before_xytheta=poses.copy(),
+        poses_after_xytheta=poses_after,
+        cov_before_xytheta=_sym(cov_before),
+        cov_after_xytheta=_sym(cov_after),
+        odometry_status=odo.status,
+        keyframe_scans=kf,
+        keyframe_stamps_ns=stamps[kf],
+        keyframe_cov_before=_sym(se2.rotate_cov_to_world(poses[kf], kf_cov_before_body)),
+        keyframe_cov_after=_sym(se2.rotate_cov_to_world(est, kf_cov_after_body)),
+        loop_closures=tuple(accepted),
+        rejected_loop_closures=tuple(rejected),
+        graph_vertices_xytheta=est,
+        graph_edges=tuple(final.edges),
+        variance_factor=scale,
+        timings_s=timings,
+    )
+
+
+def variance_factor(
+    poses_xytheta: FloatArray, edges: list[Edge], current: float, cfg: GraphConfig
+) -> tuple[float, NDArray[np.bool_]]:
+    """A-posteriori variance factor of the graph adjustment, and the loop closures counted as inliers.
+
+    ``s = sum(r_i^T S_i^-1 r_i) / (m - n)`` over the odometry factors and the loop closures whose whitened
+    error is below ``variance_factor_gate_chi2 * s`` (iterated), with ``S_i`` the factor covariances as
+    added and ``m - n = 3 * (inlier loop closures)`` the redundancy of a chain plus loops. If every
+    covariance is right up to one common factor, ``s`` estimates that factor (classical least-squares
+    adjustment). Returns ``(current, all-True)`` when fewer than ``variance_factor_min_loops`` loops agree.
+    """
+    e2 = edge_errors2(poses_xytheta, edges)
+    loops = np.array([e.kind == "loop" for e in edges])
+    s = max(current, 1e-12)
+    inl = np.ones(len(edges), dtype=bool)
+    for _ in range(10):
+        inl = ~loops | (e2 <= cfg.variance_factor_gate_chi2 * s)
+        n_loops = int(np.sum(inl & loops))
+        if n_loops < cfg.variance_factor_min_loops:
+            return current, np.ones(len(edges), dtype=bool)
+        s_new = float(np.sum(e2[inl])) / (3.0 * n_loops)
+        if abs(s_new - s) <= 1e-3 * s:
+            s = s_new
+            break
+        s = s_new
+    return max(s, cfg.variance_factor_min), inl
+
+
+def _sym(c: FloatArray) -> FloatArray:
+    return 0.5 * (c + np.swapaxes(c, -1, -2))

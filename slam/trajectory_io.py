@@ -1,0 +1,266 @@
+"""Trajectory files: TUM, g2o pose graphs and the covariance archive of a run folder (SPEC section 4).
+
+- TUM (``evo`` reads it): one pose per line, ``t x y z qx qy qz qw``, ``t`` in seconds; 2D poses are
+  written with ``z = 0`` and a yaw-only quaternion. Stamps are written from integer nanoseconds exactly
+  (``sec.nanosec``) and read back exactly.
+- g2o: ``VERTEX_SE2 id x y theta`` and ``EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33`` (upper triangle
+  of the information matrix in the measurement's child frame); loop closures are edges like the others.
+  ``FIX id`` marks an anchored vertex (the prior).
+- covariances ``.npz``: ``before`` / ``after`` (K, 3, 3) world-frame keyframe marginals, ``stamps_ns`` (K,)
+  and the scan ``indices`` (K,) of the keyframes.
+
+Readers raise :class:`TrajectoryFormatError` (a DatasetError: one line naming the file and line) on bad input.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from datasets.errors import DatasetError
+from slam.graph import Edge
+
+FloatArray = NDArray[np.float64]
+NS_PER_S = 1_000_000_000
+
+
+class TrajectoryFormatError(DatasetError):
+    """A trajectory, pose-graph or covariance file is missing or malformed."""
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _read_lines(path: Path) -> list[str]:
+    try:
+        return Path(path).read_text().splitlines()
+    except FileNotFoundError:
+        raise TrajectoryFormatError(f"{path}: no such file or directory") from None
+    except IsADirectoryError:
+        raise TrajectoryFormatError(f"{path}: is a directory") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TrajectoryFormatError(f"{path}: cannot read: {exc}") from None
+
+
+def _stamp_text(stamp_ns: int) -> str:
+    sign = "-" if stamp_ns < 0 else ""
+    s, ns = divmod(abs(int(stamp_ns)), NS_PER_S)
+    return f"{sign}{s}.{ns:09d}"
+
+
+def _parse_stamp(text: str) -> int:
+    t = text.strip()
+    neg = t.startswith("-")
+    t = t.lstrip("+-")
+    if "e" in t.lower():
+        return round(float(text) * NS_PER_S)
+    whole, _, frac = t.partition(".")
+    if not (whole or frac) or not (whole.isdigit() or whole == "") or not (frac.isdigit() or frac == ""):
+        raise ValueError(text)
+    frac = (frac + "0" * 9)[:9]
+    value = int(whole or "0") * NS_PER_S + int(frac)
+    return -value if neg else value
+
+
+# --------------------------------------------------------------------------------------------------- TUM
+
+
+def write_tum(path: str | Path, stamps_ns: NDArray[np.int64], poses_xytheta: FloatArray) -> None:
+    """Write (N,) stamps and (N, 3) poses as a TUM file (atomically)."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    poses = np.asarray(poses_xytheta, dtype=np.float64)
+    if poses.shape != (stamps.shape[0], 3):
+        raise ValueError(f"write_tum: {stamps.shape[0]} stamps but poses of shape {poses.shape}")
+    half = 0.5 * poses[:, 2]
+    lines = ["# t x y z qx qy qz qw"]
+    for t, (x, y, _), qz, qw in zip(
+        stamps, poses.tolist(), np.sin(half).tolist(), np.cos(half).tolist(), strict=True
+    ):
+        lines.append(f"{_stamp_text(t)} {x!r} {y!r} 0.0 0.0 0.0 {qz!r} {qw!r}")
+    _atomic_write(Path(path), "\n".join(lines) + "\n")
+
+
+def read_tum(path: str | Path) -> tuple[NDArray[np.int64], FloatArray]:
+    """(N,) stamps_ns and (N, 3) poses (x, y, yaw) of a TUM file (the yaw of the quaternion)."""
+    path = Path(path)
+    stamps: list[int] = []
+    poses: list[tuple[float, float, float]] = []
+    for number, line in enumerate(_read_lines(path), start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        fields = text.split()
+        if len(fields) != 8:
+            raise TrajectoryFormatError(
+                f"{path}: line {number}: expected 8 fields (t x y z qx qy qz qw), got {len(fields)}"
+            )
+        try:
+            t = _parse_stamp(fields[0])
+            x, y, _z, qx, qy, qz, qw = (float(v) for v in fields[1:])
+        except ValueError:
+            raise TrajectoryFormatError(f"{path}: line {number}: not a number in {text!r}") from None
+        if not all(np.isfinite([x, y, qx, qy, qz, qw])):
+            raise TrajectoryFormatError(f"{path}: line {number}: NaN or infinite value")
+        yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+        stamps.append(t)
+        poses.append((x, y, float(yaw)))
+    return np.asarray(stamps, dtype=np.int64), np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+
+
+# --------------------------------------------------------------------------------------------------- g2o
+
+
+@dataclass(frozen=True)
+class G2oGraph:
+    """A 2D pose graph read from g2o: (K, 3) vertices (ids 0..K-1 in file order), edges, fixed vertex ids."""
+
+    ids: NDArray[np.int64]
+    vertices_xytheta: FloatArray
+    edges: tuple[Edge, ...]
+    fixed: tuple[int, ...]
+
+
+def write_g2o(path: str | Path, vertices_xytheta: FloatArray, edges: list[Edge] | tuple[Edge, ...]) -> None:
+    """Write ``VERTEX_SE2`` lines for (K, 3) vertices (ids 0..K-1) and ``EDGE_SE2`` lines for the between
+    edges (odometry and loop closures, with their information); priors become ``FIX`` lines."""
+    lines = []
+    for k, (x, y, th) in enumerate(np.asarray(vertices_xytheta, dtype=np.float64).tolist()):
+        lines.append(f"VERTEX_SE2 {k} {x!r} {y!r} {th!r}")
+    for e in edges:
+        if e.kind == "prior":
+            lines.append(f"FIX {e.key_from}")
+            continue
+        info = e.information
+        info = 0.5 * (info + info.T)
+        dx, dy, dth = (float(v) for v in e.measurement_xytheta)
+        upper = (info[0, 0], info[0, 1], info[0, 2], info[1, 1], info[1, 2], info[2, 2])
+        lines.append(
+            f"EDGE_SE2 {e.key_from} {e.key_to} {dx!r} {dy!r} {dth!r} "
+            + " ".join(repr(float(v)) for v in upper)
+        )
+    _atomic_write(Path(path), "\n".join(lines) + "\n")
+
+
+def read_g2o(path: str | Path) -> G2oGraph:
+    """Read a 2D g2o file (``VERTEX_SE2``, ``EDGE_SE2``, ``FIX``); other tags are an error."""
+    path = Path(path)
+    ids: list[int] = []
+    verts: list[tuple[float, float, float]] = []
+    raw_edges: list[tuple[int, int, tuple[float, ...], int]] = []
+    fixed: list[int] = []
+    for number, line in enumerate(_read_lines(path), start=1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        tag = fields[0]
+        try:
+            if tag == "VERTEX_SE2":
+                if len(fields) != 5:
+                    raise TrajectoryFormatError(f"{path}: line {number}: VERTEX_SE2 needs 4 values")
+                ids.append(int(fields[1]))
+                verts.append((float(fields[2]), float(fields[3]), float(fields[4])))
+            elif tag == "EDGE_SE2":
+                if len(fields) != 12:
+                    raise TrajectoryFormatError(f"{path}: line {number}: EDGE_SE2 needs 11 values")
+                vals = tuple(float(v) for v in fields[3:])
+                raw_edges.append((int(fields[1]), int(fields[2]), vals, number))
+            elif tag == "FIX":
+                fixed.extend(int(v) for v in fields[1:])
+            else:
+                raise TrajectoryFormatError(f"{path}: line {number}: unsupported g2o record {tag!r}")
+        except ValueError:
+            raise TrajectoryFormatError(f"{path}: line {number}: not a number in {line.strip()!r}") from None
+    index = {v: k for k, v in enumerate(ids)}
+    if len(index) != len(ids):
+        raise TrajectoryFormatError(f"{path}: duplicate vertex ids")
+    edges = []
+    for i, j, vals, number in raw_edges:
+        if i not in index or j not in index:
+            raise TrajectoryFormatError(f"{path}: line {number}: edge between unknown vertices {i} and {j}")
+        info = np.array(
+            [[vals[3], vals[4], vals[5]], [vals[4], vals[6], vals[7]], [vals[5], vals[7], vals[8]]],
+            dtype=np.float64,
+        )
+        try:
+            cov = np.linalg.inv(info)
+        except np.linalg.LinAlgError:
+            raise TrajectoryFormatError(f"{path}: line {number}: singular information matrix") from None
+        kind = "odometry" if index[j] == index[i] + 1 else "loop"  # g2o does not say; consecutive ids
+        edges.append(Edge(kind, index[i], index[j], np.array(vals[:3]), cov))
+    return G2oGraph(
+        np.asarray(ids, dtype=np.int64),
+        np.asarray(verts, dtype=np.float64).reshape(-1, 3),
+        tuple(edges),
+        tuple(fixed),
+    )
+
+
+# ------------------------------------------------------------------------------------------- covariances
+
+
+def save_covariances(
+    path: str | Path,
+    stamps_ns: NDArray[np.int64],
+    before: FloatArray,
+    after: FloatArray,
+    indices: NDArray[np.int64] | None = None,
+) -> None:
+    """Write (K, 3, 3) world-frame marginals before / after loop closure with their (K,) stamps."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    k = stamps.shape[0]
+    b = np.asarray(before, dtype=np.float64)
+    a = np.asarray(after, dtype=np.float64)
+    if b.shape != (k, 3, 3) or a.shape != (k, 3, 3):
+        raise ValueError(f"save_covariances: {k} stamps, before {b.shape}, after {a.shape}")
+    idx = np.arange(k, dtype=np.int64) if indices is None else np.asarray(indices, dtype=np.int64)
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(
+        dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.", suffix=".npz"
+    )
+    os.close(fd)
+    try:
+        np.savez(tmp, stamps_ns=stamps, before=b, after=a, indices=idx, frame="world", order="x y theta")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_covariances(path: str | Path) -> dict[str, NDArray]:
+    """The arrays written by :func:`save_covariances` (``stamps_ns``, ``before``, ``after``, ``indices``)."""
+    path = Path(path)
+    try:
+        with np.load(path) as data:
+            out = {k: np.asarray(data[k]) for k in ("stamps_ns", "before", "after", "indices")}
+    except FileNotFoundError:
+        raise TrajectoryFormatError(f"{path}: no such file or directory") from None
+    except KeyError as exc:
+        raise TrajectoryFormatError(f"{path}: missing array {exc.args[0]!r}") from None
+    except (OSError, ValueError) as exc:
+        raise TrajectoryFormatError(f"{path}: not a covariance archive ({exc})") from None
+    k = out["stamps_ns"].shape[0]
+    for name in ("before", "after"):
+        if out[name].shape != (k, 3, 3):
+            raise TrajectoryFormatError(f"{path}: {name} has shape {out[name].shape}, expected ({k}, 3, 3)")
+    return out
+
+
+def yaw_quaternion(theta_rad: FloatArray) -> FloatArray:
+    """(N, 4) quaternions (qx, qy, qz, qw) of yaw angles."""
+    half = 0.5 * np.asarray(theta_rad, dtype=np.float64)
+    z = np.zeros_like(half)
+    return np.stack([z, z, np.sin(half), np.cos(half)], axis=-1)

@@ -1,0 +1,150 @@
+"""The pose graph, GTSAM-test style: a small square loop, optimised, with its marginals asserted."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from slam import geometry as se2
+from slam.config import GraphConfig
+from slam.graph import PoseGraph, edge_errors2
+from slam.system import variance_factor
+
+ODO_COV = np.diag([0.2**2, 0.2**2, 0.1**2])  # the noise of GTSAM's Pose2SLAMExample
+PRIOR_COV = np.diag([0.3**2, 0.3**2, 0.1**2])
+SQUARE = np.array([[0, 0, 0], [2, 0, np.pi / 2], [2, 2, np.pi], [0, 2, -np.pi / 2], [0, 0, 0]], dtype=float)
+
+
+def _square_graph(with_closure: bool, initial: np.ndarray) -> PoseGraph:
+    g = PoseGraph()
+    for p in initial:
+        g.add_pose(p)
+    g.add_prior(0, SQUARE[0], PRIOR_COV)
+    for i in range(4):
+        g.add_between("odometry", i, i + 1, np.array([2.0, 0.0, np.pi / 2]), ODO_COV)
+    if with_closure:
+        g.add_between("loop", 4, 1, np.array([2.0, 0.0, np.pi / 2]), ODO_COV)
+    g.update()
+    return g
+
+
+def _perturbed() -> np.ndarray:
+    # GTSAM's example initial estimate
+    return np.array(
+        [[0.5, 0.0, 0.2], [2.3, 0.1, -0.2], [4.1, 0.1, np.pi / 2], [4.0, 2.0, np.pi], [2.1, 2.1, -np.pi / 2]]
+    )
+
+
+def test_square_loop_optimises_to_the_square() -> None:
+    g = _square_graph(True, _perturbed())
+    est = g.optimize_batch()
+    np.testing.assert_allclose(est[:, :2], SQUARE[:, :2], atol=1e-6)
+    np.testing.assert_allclose(se2.wrap(est[:, 2] - SQUARE[:, 2]), 0.0, atol=1e-6)
+
+
+def test_marginals_symmetric_positive_definite_and_shrinking_after_closure() -> None:
+    open_chain = _square_graph(False, SQUARE)
+    open_chain.optimize_batch()
+    before = open_chain.marginals_body()
+    closed = _square_graph(True, SQUARE)
+    closed.optimize_batch()
+    after = closed.marginals_body()
+    for cov in np.concatenate([before, after]):
+        np.testing.assert_allclose(cov, cov.T, atol=1e-12)
+        assert np.all(np.linalg.eigvalsh(cov) > 0)
+    # the first pose is held by its prior in both graphs
+    np.testing.assert_allclose(before[0], after[0], rtol=1e-6, atol=1e-12)
+    # every later pose is better known once the loop is closed, the last one most of all
+    for k in range(1, 5):
+        assert np.all(np.linalg.eigvalsh(before[k] - after[k]) > -1e-12), k
+        assert np.trace(after[k]) < np.trace(before[k])
+    assert np.trace(after[4]) < 0.6 * np.trace(before[4])
+    # GTSAM's own Marginals on the same graph agree (the wrapper adds nothing)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(
+        gtsam.PriorFactorPose2(0, gtsam.Pose2(0, 0, 0), gtsam.noiseModel.Gaussian.Covariance(PRIOR_COV))
+    )
+    noise = gtsam.noiseModel.Gaussian.Covariance(ODO_COV)
+    for i, j in ((0, 1), (1, 2), (2, 3), (3, 4), (4, 1)):
+        graph.add(gtsam.BetweenFactorPose2(i, j, gtsam.Pose2(2, 0, np.pi / 2), noise))
+    values = gtsam.Values()
+    for k, p in enumerate(SQUARE):
+        values.insert(k, gtsam.Pose2(*p))
+    m = gtsam.Marginals(graph, values)
+    np.testing.assert_allclose(after[3], m.marginalCovariance(3), rtol=1e-6, atol=1e-12)
+
+
+def test_edge_errors_match_gtsam_factor_errors() -> None:
+    g = _square_graph(True, _perturbed())
+    est = _perturbed()
+    values = gtsam.Values()
+    for k, p in enumerate(est):
+        values.insert(k, gtsam.Pose2(*p))
+    ours = edge_errors2(est, g.edges)
+    theirs = [2.0 * g.graph.at(i).error(values) for i in range(g.graph.size())]
+    np.testing.assert_allclose(ours, theirs, rtol=1e-9)
+
+
+def _corridor_loop(n: int, false_closure: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """A 4 x (n/4) square track with noisy odometry, true closures, and optionally one false closure."""
+    rng = np.random.default_rng(1)
+    side = n // 4
+    inc_true = np.tile([1.0, 0.0, 0.0], (n, 1))
+    inc_true[side - 1 :: side, 2] = np.pi / 2
+    truth = se2.chain(np.zeros(3), inc_true)
+    cov = np.diag([0.02**2, 0.02**2, 0.01**2])
+    g = PoseGraph()
+    g.add_pose(truth[0])
+    g.add_prior(0, truth[0], np.diag([1e-6, 1e-6, 1e-8]))
+    pose = truth[0]
+    for i in range(n):
+        z = se2.compose(inc_true[i], rng.multivariate_normal(np.zeros(3), cov))
+        pose = se2.compose(pose, z)
+        g.add_pose(pose)
+        g.add_between("odometry", i, i + 1, z, cov)
+    for j, k in ((0, n), (0, n - 1), (1, n), (1, n - 1)):
+        g.add_between("loop", j, k, se2.between(truth[j], truth[k]), cov, robust="cauchy")
+    if false_closure is not None:
+        g.add_between("loop", side, 3 * side, np.array([0.0, 0.0, 0.0]), cov, robust=false_closure)
+    g.update()
+    return g.optimize_batch(), truth
+
+
+def test_a_false_closure_does_not_wreck_a_robust_graph() -> None:
+    clean, truth = _corridor_loop(40, None)
+    robust, _ = _corridor_loop(40, "cauchy")
+    plain, _ = _corridor_loop(40, "none")
+    err = {
+        name: np.max(np.hypot(*(est[:, :2] - truth[:, :2]).T))
+        for name, est in (("clean", clean), ("robust", robust), ("plain", plain))
+    }
+    assert err["clean"] < 0.3
+    assert err["robust"] < err["clean"] + 0.1  # the Cauchy loss ignores the false closure ...
+    assert err["plain"] > 2.0  # ... which pulls two opposite sides of the square together without it
+
+
+def test_variance_factor_recovers_a_common_noise_scale() -> None:
+    rng = np.random.default_rng(5)
+    truth = se2.chain(np.zeros(3), np.tile([0.5, 0.0, 0.05], (300, 1)))
+    stated = np.diag([0.01**2, 0.01**2, 0.005**2])
+    real_scale = 9.0  # the real noise is 3x the stated sigma
+    g = PoseGraph()
+    for p in truth:
+        g.add_pose(p)
+    g.add_prior(0, truth[0], np.diag([1e-8, 1e-8, 1e-10]))
+    for i in range(300):
+        z = se2.compose(
+            se2.between(truth[i], truth[i + 1]), rng.multivariate_normal(np.zeros(3), stated * real_scale)
+        )
+        g.add_between("odometry", i, i + 1, z, stated)
+    for _ in range(150):
+        i, j = sorted(rng.choice(301, 2, replace=False))
+        z = se2.compose(
+            se2.between(truth[i], truth[j]), rng.multivariate_normal(np.zeros(3), stated * real_scale)
+        )
+        g.add_between("loop", int(i), int(j), z, stated)
+    g.update()
+    est = g.optimize_batch()
+    scale, inliers = variance_factor(est, g.edges, 1.0, GraphConfig())
+    assert 0.8 * real_scale < scale < 1.2 * real_scale
+    assert inliers.mean() > 0.95

@@ -1,0 +1,80 @@
+"""The SLAM stage on the simulated ``loop`` world (ground truth known): accuracy before and after loop
+closure, consistency of the covariances (NEES), and the shape of the result."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from datasets.simulation import make_world
+from slam import geometry as se2
+from slam import metrics
+from slam.config import SlamConfig
+from slam.system import SlamResult, run_slam, wheel_poses_at_scans
+from slam.trajectory_io import read_g2o, write_g2o
+
+
+@pytest.fixture(scope="module", params=[0, 1], ids=["seed0-calibration", "seed1-verification"])
+def loop_run(request) -> tuple:
+    rec = make_world("loop", request.param).recording
+    result = run_slam(rec.scans, rec.odometry, rec.laser_in_base_xytheta, SlamConfig())
+    return rec, result
+
+
+def test_loop_closure_brings_the_ate_below_5_cm(loop_run) -> None:
+    rec, result = loop_run
+    truth = rec.reference.poses_xytheta
+    wheel = wheel_poses_at_scans(rec.odometry, rec.scans.stamps_ns)
+    ate_wheel = metrics.ate_rmse(wheel, truth)
+    ate_before = metrics.ate_rmse(result.poses_before_xytheta, truth)
+    ate_after = metrics.ate_rmse(result.poses_after_xytheta, truth)
+    assert ate_after <= 0.05
+    assert ate_after < ate_before
+    # the wheels drift by metres (the scan-matching chain alone is already at a few cm on this world)
+    assert ate_wheel >= 5 * ate_after
+    assert ate_wheel > 0.5
+
+
+def test_covariances_are_consistent_with_the_real_errors(loop_run) -> None:
+    rec, result = loop_run
+    truth = rec.reference.poses_xytheta
+    nees_after = metrics.nees(result.poses_after_xytheta, result.cov_after_xytheta, truth)[1:]
+    nees_before = metrics.nees(result.poses_before_xytheta, result.cov_before_xytheta, truth)[1:]
+    assert 1.0 <= np.mean(nees_after) <= 6.0
+    assert np.mean(nees_before) <= 6.0  # the chain alone is not overconfident either
+
+
+def test_result_shapes_marginals_and_closures(loop_run) -> None:
+    rec, result = loop_run
+    n, k = len(rec.scans), len(result.keyframe_scans)
+    assert isinstance(result, SlamResult)
+    assert result.poses_after_xytheta.shape == (n, 3) and result.cov_after_xytheta.shape == (n, 3, 3)
+    assert result.keyframe_cov_before.shape == (k, 3, 3) and result.keyframe_stamps_ns.shape == (k,)
+    np.testing.assert_array_equal(result.keyframe_stamps_ns, rec.scans.stamps_ns[result.keyframe_scans])
+    for covs in (result.keyframe_cov_before[1:], result.keyframe_cov_after[1:], result.cov_after_xytheta[1:]):
+        np.testing.assert_allclose(covs, np.swapaxes(covs, 1, 2), atol=1e-15)
+        assert np.all(np.linalg.eigvalsh(covs) > 0)
+    # closing the loop shrinks the uncertainty of the far end of the loop a lot
+    far = int(np.argmax(np.trace(result.keyframe_cov_before, axis1=1, axis2=2)))
+    assert np.trace(result.keyframe_cov_after[far]) < 0.2 * np.trace(result.keyframe_cov_before[far])
+    # keyframe poses of the graph are the per-scan poses of the keyframes
+    np.testing.assert_allclose(
+        result.poses_after_xytheta[result.keyframe_scans], result.graph_vertices_xytheta
+    )
+    # every accepted closure agrees with the ground truth
+    truth = rec.reference.poses_xytheta
+    assert len(result.loop_closures) >= 5
+    for c in result.loop_closures:
+        rel_true = se2.between(truth[c.target_scan], truth[c.query_scan])
+        err = se2.between(rel_true, c.relative_xytheta)
+        assert np.hypot(err[0], err[1]) < 0.1 and abs(err[2]) < 0.02
+    assert sum(e.kind == "loop" for e in result.graph_edges) == len(result.loop_closures)
+
+
+def test_pose_graph_exports_to_g2o(loop_run, tmp_path) -> None:
+    _, result = loop_run
+    path = tmp_path / "pose_graph.g2o"
+    write_g2o(path, result.graph_vertices_xytheta, result.graph_edges)
+    g = read_g2o(path)
+    np.testing.assert_array_equal(g.vertices_xytheta, result.graph_vertices_xytheta)
+    assert len(g.edges) == sum(e.kind != "prior" for e in result.graph_edges)

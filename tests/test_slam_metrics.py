@@ -1,0 +1,73 @@
+"""SLAM metrics: ATE after SE(2) alignment, the relations error (checked by hand), NEES, stamp matching."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam import geometry as se2
+from slam import metrics
+
+
+def test_relations_errors_by_hand() -> None:
+    p1 = np.array([[1.0, 2.0, np.pi / 2], [0.0, 0.0, 0.0], [0.0, 0.0, np.pi]])
+    p2 = np.array([[1.0, 4.0, np.pi / 2 + 0.1], [3.0, 4.0, 0.0], [-1.0, 0.0, -np.pi + 0.2]])
+    # by hand: the estimated relative poses are (2, 0, 0.1), (3, 4, 0) and (1, 0, 0.2)
+    np.testing.assert_allclose(se2.between(p1, p2), [[2, 0, 0.1], [3, 4, 0], [1, 0, 0.2]], atol=1e-12)
+    relations = np.array([[2.1, 0.0, 0.05], [3.0, 4.0, 0.0], [1.0, 0.3, 0.2 - 2 * np.pi]])
+    err = metrics.relation_errors(p1, p2, relations)
+    np.testing.assert_allclose(err.trans_m, [0.1, 0.0, 0.3], atol=1e-12)
+    np.testing.assert_allclose(err.rot_deg, [np.degrees(0.05), 0.0, 0.0], atol=1e-9)  # yaw wraps
+    d = err.as_dict()
+    assert d["count"] == 3
+    assert d["trans_mean_m"] == pytest.approx(0.4 / 3)
+    assert d["trans_std_m"] == pytest.approx(np.sqrt(0.1 / 3 - (0.4 / 3) ** 2))
+    assert d["rot_mean_deg"] == pytest.approx(np.degrees(0.05) / 3)
+    assert metrics.relation_errors(p1[:0], p2[:0], relations[:0]).as_dict()["trans_mean_m"] is None
+
+
+def test_ate_is_invariant_to_a_rigid_motion_and_measures_the_rest() -> None:
+    rng = np.random.default_rng(0)
+    ref = np.column_stack([rng.uniform(-20, 20, 500), rng.uniform(-20, 20, 500), rng.uniform(-3, 3, 500)])
+    moved = se2.compose(np.array([5.0, -3.0, 1.2]), ref)
+    assert metrics.ate_rmse(moved, ref) == pytest.approx(0.0, abs=1e-9)
+    # a known residual: +-0.1 m along x alternating (zero mean, no rotation to absorb) -> RMSE 0.1
+    noisy = ref.copy()
+    noisy[:, 0] += np.where(np.arange(500) % 2 == 0, 0.1, -0.1)
+    moved_noisy = se2.compose(np.array([5.0, -3.0, 1.2]), noisy)
+    assert metrics.ate_rmse(moved_noisy, ref) == pytest.approx(0.1, rel=0.02)
+    with pytest.raises(ValueError, match="matched"):
+        metrics.ate_rmse(ref[:3], ref[:4])
+
+
+def test_nees_of_consistent_errors_averages_three() -> None:
+    rng = np.random.default_rng(1)
+    n = 4000
+    truth = np.column_stack([rng.uniform(-5, 5, n), rng.uniform(-5, 5, n), rng.uniform(-3, 3, n)])
+    a = rng.normal(size=(n, 3, 3)) * [0.1, 0.1, 0.02]
+    cov = a @ np.swapaxes(a, 1, 2) + np.eye(3) * 1e-4
+    err = np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.normal(size=(n, 3)))
+    est = truth + err
+    est[0] = truth[0]  # the anchor
+    cov[0] = np.eye(3) * 1e-9
+    values = metrics.nees(est, cov, truth)
+    assert np.mean(values[1:]) == pytest.approx(3.0, rel=0.08)
+    # errors twice as large as the covariance says: NEES about 12
+    est2 = truth + 2 * err
+    est2[0] = truth[0]
+    values2 = metrics.nees(est2, cov, truth)
+    assert np.mean(values2[1:]) == pytest.approx(12.0, rel=0.08)
+
+
+def test_nees_anchors_the_reference_on_the_first_pose() -> None:
+    truth = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    est = se2.compose(np.array([10.0, 5.0, 0.5]), truth)  # the same trajectory in another frame
+    cov = np.tile(np.eye(3) * 1e-4, (3, 1, 1))
+    np.testing.assert_allclose(metrics.nees(est, cov, truth), 0.0, atol=1e-12)
+
+
+def test_index_at_stamps() -> None:
+    stamps = np.array([0, 100, 200, 300], dtype=np.int64)
+    q = np.array([-5, 49, 51, 160, 301, 400], dtype=np.int64)
+    np.testing.assert_array_equal(metrics.index_at_stamps(stamps, q, 10), [0, -1, -1, -1, 3, -1])
+    np.testing.assert_array_equal(metrics.index_at_stamps(stamps, q, 60), [0, 0, 1, 2, 3, -1])

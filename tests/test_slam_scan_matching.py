@@ -1,0 +1,130 @@
+"""The grid scan matcher on synthetic rooms: correlative search, point-to-line refinement, the information
+of an alignment (a corridor constrains one direction only), normals and the free-space check."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam import geometry as se2
+from slam.scan_matching import (
+    PointGrid,
+    correlative_search,
+    mark_free_space,
+    overlap,
+    refine_point_to_line,
+    scan_normals,
+)
+
+ROOM = [  # walls as segments (x0, y0, x1, y1): a 10 x 6 m room with a pillar and a notch
+    (0, 0, 10, 0),
+    (10, 0, 10, 6),
+    (10, 6, 0, 6),
+    (0, 6, 0, 0),
+    (4, 2, 5, 2),
+    (5, 2, 5, 3),
+    (5, 3, 4, 3),
+    (4, 3, 4, 2),
+    (7, 6, 7, 4.5),
+    (7, 4.5, 8, 4.5),
+    (8, 4.5, 8, 6),
+]
+CORRIDOR = [(-50, 0, 50, 0), (-50, 2, 50, 2)]
+
+
+def cast(pose: np.ndarray, walls: list, n: int = 360, max_range: float = 30.0) -> np.ndarray:
+    """(P, 2) body-frame end points of ``n`` beams over 360 degrees (exact segment intersection)."""
+    ang = np.linspace(-np.pi, np.pi, n, endpoint=False)
+    d = np.stack([np.cos(ang + pose[2]), np.sin(ang + pose[2])], axis=1)
+    best = np.full(n, np.inf)
+    for x0, y0, x1, y1 in walls:
+        e = np.array([x1 - x0, y1 - y0], dtype=float)
+        w = np.array([x0, y0]) - pose[:2]
+        den = d[:, 0] * (-e[1]) - d[:, 1] * (-e[0])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (w[0] * (-e[1]) - w[1] * (-e[0])) / den
+            u = (d[:, 0] * w[1] - d[:, 1] * w[0]) / den
+        ok = (np.abs(den) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1)
+        best = np.where(ok & (t < best), t, best)
+    hit = best < max_range
+    return np.stack([best[hit] * np.cos(ang[hit]), best[hit] * np.sin(ang[hit])], axis=1)
+
+
+def _map(pose: np.ndarray, walls: list) -> tuple[PointGrid, np.ndarray]:
+    pts = cast(pose, walls)
+    world = se2.transform_points(pose, pts)
+    rot = se2.rot3(pose[2])[:2, :2]
+    grid = PointGrid.from_points(world, scan_normals(pts) @ rot.T)
+    return grid, world
+
+
+def test_normals_of_a_straight_wall_are_perpendicular() -> None:
+    x = np.linspace(-1, 1, 21)
+    pts = np.stack([x, np.full_like(x, 2.0)], axis=1)
+    n = scan_normals(pts)
+    assert np.all(np.isfinite(n))
+    np.testing.assert_allclose(np.abs(n[:, 1]), 1.0, atol=1e-9)
+    lonely = scan_normals(np.array([[0.0, 0.0], [5.0, 0.0], [10.0, 3.0]]))
+    assert np.all(np.isnan(lonely))
+
+
+@pytest.mark.parametrize("offset", [(0.12, -0.08, 0.05), (-0.3, 0.25, -0.12)])
+def test_search_and_refinement_recover_a_known_pose(offset: tuple) -> None:
+    map_pose = np.array([3.0, 1.5, 0.2])
+    grid, _ = _map(map_pose, ROOM)
+    true_pose = se2.compose(map_pose, np.array(offset))
+    scan = cast(true_pose, ROOM)
+    found = correlative_search(grid, scan, map_pose, 0.4, 0.2, np.radians(0.25))
+    assert found.score > 0.5
+    al = refine_point_to_line(grid, scan, found.pose_xytheta)
+    err = se2.between(true_pose, al.pose_xytheta)
+    assert np.hypot(err[0], err[1]) < 0.01
+    assert abs(err[2]) < np.radians(0.1)
+    assert al.rms_m < 0.01
+    # the information is symmetric positive definite: the room pins every direction
+    eig = np.linalg.eigvalsh(al.hessian)
+    assert np.all(eig > 0)
+    # a start 2 m and 60 deg off is beyond the refinement's reach: that is what the search is for
+    far = refine_point_to_line(grid, scan, se2.compose(true_pose, np.array([2.0, -1.5, 1.0])))
+    assert np.hypot(*se2.between(true_pose, far.pose_xytheta)[:2]) > 0.1
+
+
+def test_a_corridor_constrains_one_direction_and_the_prior_holds_the_other() -> None:
+    pose = np.array([0.0, 1.0, 0.0])
+    grid, _ = _map(pose, CORRIDOR)
+    scan = cast(pose, CORRIDOR)
+    al = refine_point_to_line(grid, scan, pose)
+    eig = np.linalg.eigvalsh(al.hessian[:2, :2])
+    assert eig[0] < 1e-3 * eig[1]  # the corridor's axis is not observed
+    # a wheel prior 0.3 m ahead along the axis is kept along the axis; across it the walls win
+    prior = np.array([0.3, 1.05, 0.0])
+    info = np.diag([1 / 0.05**2, 1 / 0.05**2, 1 / 0.02**2])
+    al2 = refine_point_to_line(grid, scan, prior, prior_xytheta=prior, prior_information=info)
+    assert al2.pose_xytheta[0] == pytest.approx(0.3, abs=0.01)
+    assert al2.pose_xytheta[1] == pytest.approx(1.0, abs=0.005)
+
+
+def test_free_space_check_separates_partial_overlap_from_a_wrong_alignment() -> None:
+    map_pose = np.array([2.0, 1.5, 0.0])
+    grid, world = _map(map_pose, ROOM)
+    mark_free_space(grid, np.tile(map_pose[:2], (world.shape[0], 1)), world, 0.15)
+    query_pose = np.array([6.0, 3.5, 1.0])
+    scan = cast(query_pose, ROOM)
+    hits, conflicts = overlap(grid, scan, query_pose)
+    assert hits > 0.5 * scan.shape[0]
+    assert conflicts <= 0.05 * (hits + conflicts)
+    wrong = se2.compose(query_pose, np.array([0.0, 0.0, np.pi / 2]))
+    hits_w, conflicts_w = overlap(grid, scan, wrong)
+    assert conflicts_w > 0.3 * (hits_w + conflicts_w)
+
+
+def test_grid_insert_and_reset() -> None:
+    grid = PointGrid.around(np.zeros(2), 2.0, resolution_m=0.05)
+    assert np.all(grid.nearest == -1)
+    grid.insert(np.array([[0.0, 0.0], [1.0, 1.0]]), np.array([[1.0, 0.0], [0.0, 1.0]]))
+    assert len(grid) == 2
+    cell = ((np.array([1.0, 1.0]) - grid.origin_xy_m) / grid.resolution_m).astype(int)
+    assert grid.nearest[cell[1], cell[0]] == 1
+    assert grid.score[cell[1], cell[0]] > 0.5
+    grid.reset(np.array([10.0, 10.0]))
+    assert len(grid) == 0 and np.all(grid.nearest == -1) and np.all(grid.score == 0)
