@@ -5,8 +5,10 @@ trajectories before and after loop closure:
 
 - ``--reference LOG``: a recording whose ``reference`` poses are the (pseudo) ground truth -- a
   GMapping-corrected CARMEN log (``*.gfs.log``, ``*-corrected.log*``) or a simulated bag with ground truth
-  (the input itself may be given). Scans are matched by content and logger stamp for two CARMEN logs
-  (:func:`datasets.carmen.match_scans`), else by scan stamp. ATE RMSE (m) after SE(2) alignment, the
+  (the input itself may be given), or a KITTI folder with its poses file (give the same folder: its own
+  poses, moved to the Velodyne frame by the reader, are the reference; SLAM runs on its clouds). Scans are
+  matched by content and logger stamp for two CARMEN logs (:func:`datasets.carmen.match_scans`), else by
+  scan stamp. ATE RMSE (m) after SE(2) alignment, the
   relations error between consecutive reference scans, and the NEES of the covariances.
 - ``--relations FILE``: Kuemmerle et al. relations ``t1 t2 x y z roll pitch yaw``; the estimated poses at
   ``t1`` / ``t2`` are those of the scans with these stamps (the scan stamps, or the CARMEN logger stamps when
@@ -33,7 +35,7 @@ from pipeline.errors import PipelineError
 from pipeline.progress import Progress
 from slam import geometry as se2
 from slam import metrics
-from slam.system import SlamResult, run_slam
+from slam.system import SlamResult, run_slam_recording
 
 STAMP_TOLERANCE_NS = 50_000_000  # 50 ms: a relation stamp farther from every scan stamp is not matched
 
@@ -62,9 +64,8 @@ def evaluate_slam(
         scans, rows = match_reference(rec, ref)
     if relations is not None:
         rel_match = match_relations(rec, relations, relations_path)
-    wheel = rec.scan_poses if rec.scan_poses is not None else rec.odometry
     t0 = time.perf_counter()
-    result = run_slam(rec.scans, wheel, rec.laser_in_base_xytheta, config.slam, progress)
+    result = run_slam_recording(rec, config.slam, progress)
     wall_s = time.perf_counter() - t0
     out: dict[str, Any] = {"relations": None, "ate_rmse_m": None}
     if ref is not None:

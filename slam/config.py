@@ -186,6 +186,44 @@ class GraphConfig(BaseModel):
     max_iterations: int = Field(100, ge=1, description="Levenberg-Marquardt iterations")
 
 
+class CloudOdometryConfig(BaseModel):
+    """3D inputs (point clouds): KISS-ICP odometry on the clouds as they are, and the ``Pose3`` graph."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    voxel_size_m: float | None = Field(
+        None, gt=0, le=5, description="KISS-ICP voxel size; None: max_range_m / 100 (KISS-ICP's own default)"
+    )
+    max_range_m: float = Field(100.0, gt=0, description="points farther than this are dropped")
+    min_range_m: float = Field(0.0, ge=0, description="points nearer than this are dropped")
+    deskew: bool = Field(
+        False,
+        description="motion compensation with per-point times from the azimuth of a spinning lidar (KITTI "
+        "frames are already motion-compensated, so off by default)",
+    )
+    keyframe_distance_m: float = Field(1.0, gt=0, description="new 3D keyframe after this much travel")
+    keyframe_rotation_rad: float = Field(0.2, gt=0, description="... or this much rotation")
+    min_point_sigma_m: float = Field(0.01, gt=0, description="floor of the residual-based point sigma")
+    odometry_cov_scale: float = Field(
+        1.0, gt=0, description="scale of the registration covariances in the odometry factors"
+    )
+    loop_search_radius_m: float = Field(
+        10.0, ge=0, description="loop candidates: keyframes within this distance (plus 3 sigma)"
+    )
+    loop_min_separation_m: float = Field(30.0, ge=0, description="least travel between the two keyframes")
+    loop_max_rms_m: float = Field(0.2, gt=0, description="largest point-to-point RMS of a verified closure")
+    loop_min_inlier_fraction: float = Field(
+        0.5, ge=0, le=1, description="least fraction of query points near the target after alignment"
+    )
+    loop_consistency_chi2: float = Field(
+        100.0, gt=0, description="Mahalanobis gate of the found relative pose against the prediction (6 dof)"
+    )
+    robust_kernel: Literal["cauchy", "huber", "dcs", "none"] = Field(
+        "cauchy", description="robust loss of 3D loop-closure factors"
+    )
+    robust_kernel_width: float = Field(1.0, gt=0, description="kernel width in whitened (sigma) units")
+
+
 class SlamConfig(BaseModel):
     """Odometry, keyframing, loop closure and pose-graph settings."""
 
@@ -196,6 +234,7 @@ class SlamConfig(BaseModel):
     odometry: OdometryConfig = Field(default_factory=OdometryConfig)
     loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig)
     graph: GraphConfig = Field(default_factory=GraphConfig)
+    cloud: CloudOdometryConfig = Field(default_factory=CloudOdometryConfig)
 
     @model_validator(mode="after")
     def _ranges(self) -> SlamConfig:

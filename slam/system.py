@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from datasets.types import ScanSequence, Trajectory
+from datasets.types import Recording, ScanSequence, Trajectory
 from slam import geometry as se2
 from slam.config import GraphConfig, SlamConfig
 from slam.graph import Edge, PoseGraph, edge_errors2
@@ -63,6 +63,13 @@ class SlamResult:
     graph_edges: tuple[Edge, ...]
     variance_factor: float = 1.0
     timings_s: dict[str, float] = field(default_factory=dict)
+    # 3D inputs only (:mod:`slam.system3d`): (N, 4, 4) poses, (N, 6, 6) and (K, 6, 6) world-frame
+    # (x, y, z, rx, ry, rz) covariances; the 2D fields above are their SE(2) projections
+    poses_before_se3: FloatArray | None = None
+    poses_after_se3: FloatArray | None = None
+    cov_after_se3: FloatArray | None = None
+    keyframe_cov_before_se3: FloatArray | None = None
+    keyframe_cov_after_se3: FloatArray | None = None
 
     def trajectory(self, which: str = "after") -> Trajectory:
         """The per-scan trajectory ``"before"`` or ``"after"`` loop closure, with its covariances."""
@@ -94,6 +101,20 @@ def wheel_poses_at_scans(odometry: Trajectory, stamps_ns: NDArray[np.int64]) -> 
     if not np.all(order == np.arange(len(order))):
         odometry = Trajectory(odometry.stamps_ns[order], odometry.poses_xytheta[order], odometry.frame_id)
     return odometry.interpolate(stamps)
+
+
+def run_slam_recording(
+    recording: Recording, config: SlamConfig | None = None, progress: ProgressLike | None = None
+) -> SlamResult:
+    """SLAM on whatever a recording holds: its 3D clouds (KISS-ICP + ``Pose3`` graph,
+    :func:`slam.system3d.run_slam_clouds`) when it has them, else its planar scans and wheel odometry
+    (:func:`run_slam`). The result has the same contract either way."""
+    if recording.clouds is not None and len(recording.clouds) > 0:
+        from slam.system3d import run_slam_clouds
+
+        return run_slam_clouds(recording.clouds, config, progress)
+    wheel = recording.scan_poses if recording.scan_poses is not None else recording.odometry
+    return run_slam(recording.scans, wheel, recording.laser_in_base_xytheta, config, progress)
 
 
 def run_slam(

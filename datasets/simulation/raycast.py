@@ -17,7 +17,7 @@ EDGE_TOLERANCE = 1e-9
 
 
 @numba.njit(parallel=True, cache=True, fastmath=False)
-def _cast(ox, oy, dx, dy, edges, out):  # pragma: no cover - compiled
+def _cast(ox, oy, dx, dy, edges, out, hit_edge):  # pragma: no cover - compiled
     n_rays = ox.shape[0]
     n_edges = edges.shape[0]
     lo = -EDGE_TOLERANCE
@@ -28,6 +28,7 @@ def _cast(ox, oy, dx, dy, edges, out):  # pragma: no cover - compiled
         vx = dx[r]
         vy = dy[r]
         best = np.inf
+        best_k = -1
         for k in range(n_edges):
             ax = edges[k, 0]
             ay = edges[k, 1]
@@ -42,6 +43,7 @@ def _cast(ox, oy, dx, dy, edges, out):  # pragma: no cover - compiled
                     u = (wx * vy - wy * vx) / denom
                     if lo <= u <= hi:
                         best = t
+                        best_k = k
             elif wx * vy - wy * vx == 0.0:
                 # collinear: the ray runs along the edge; first contact is the nearer end (or the origin)
                 t0 = wx * vx + wy * vy
@@ -52,7 +54,9 @@ def _cast(ox, oy, dx, dy, edges, out):  # pragma: no cover - compiled
                     t = max(t0, 0.0)
                     if t < best:
                         best = t
+                        best_k = k
         out[r] = best
+        hit_edge[r] = best_k
 
 
 def cast_rays(
@@ -63,6 +67,16 @@ def cast_rays(
     ``origins_xy_m`` (..., 2) and ``angles_rad`` (...) broadcast together; ``edges`` (E, 4) as
     ``x0, y0, x1, y1`` (:meth:`World.edges`). Returns an array of the broadcast shape.
     """
+    return cast_rays_hit_edges(origins_xy_m, angles_rad, edges)[0]
+
+
+def cast_rays_hit_edges(
+    origins_xy_m: NDArray[np.floating], angles_rad: NDArray[np.floating], edges: NDArray[np.floating]
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """:func:`cast_rays` plus the index (into ``edges``) of the edge each ray hits, -1 for none.
+
+    The edge gives the surface orientation at the hit (the angle of incidence of a laser beam).
+    """
     origins = np.asarray(origins_xy_m, dtype=np.float64)
     angles = np.asarray(angles_rad, dtype=np.float64)
     shape = np.broadcast_shapes(origins.shape[:-1], angles.shape)
@@ -70,6 +84,7 @@ def cast_rays(
     a = np.broadcast_to(angles, shape).reshape(-1)
     e = np.ascontiguousarray(edges, dtype=np.float64).reshape(-1, 4)
     out = np.empty(a.shape[0], dtype=np.float64)
+    hit_edge = np.empty(a.shape[0], dtype=np.int64)
     _cast(
         np.ascontiguousarray(o[:, 0]),
         np.ascontiguousarray(o[:, 1]),
@@ -77,5 +92,6 @@ def cast_rays(
         np.sin(a),
         e,
         out,
+        hit_edge,
     )
-    return out.reshape(shape)
+    return out.reshape(shape), hit_edge.reshape(shape)

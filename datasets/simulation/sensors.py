@@ -11,6 +11,20 @@ Laser model (per beam, independent draws):
   (like the small error codes of real drivers); it never happens unless the robot grazes a wall;
 - all beams of a scan are taken at the scan's stamp (no motion distortion: ``time_increment = 0``).
 
+A real scanner does worse than Gaussian noise; :class:`LaserArtifacts` (off unless a spec carries one) adds,
+in this order, each with its own random draws after the ones above:
+
+- **grazing incidence**: a beam meeting a surface at an angle of incidence (to the surface normal) beyond
+  ``max_incidence_rad`` returns nothing, and with a probability rising linearly from 0 to 1 over the
+  ``incidence_fade_rad`` below it (too little light comes back from a wall seen edge-on: a long smooth
+  corridor wall is seen only near the robot);
+- **mixed pixels**: where two neighbouring beams' true ranges differ by more than ``mixed_pixel_jump_m``
+  (a depth edge), the spot straddles both surfaces and, with ``mixed_pixel_probability``, one of the two
+  beams reports a range uniformly between them (the "veil" points of real scans);
+- **outliers**: with ``outlier_probability`` a beam reports a spurious range uniform between ``range_min_m``
+  and its true range (dust, a reflection, a passer-by's leg);
+- **dropouts**: with ``dropout_probability`` a beam returns nothing (a dark or specular spot).
+
 Odometry model (differential drive, per odometry step, on the true body-frame increment ``dx, dy, dtheta``
 over ``ds = hypot(dx, dy)``; variances scale with the increment, so the drift does not depend on the rate):
 
@@ -32,15 +46,30 @@ import numpy as np
 from numpy.typing import NDArray
 
 from datasets.errors import DatasetError
-from datasets.simulation.raycast import cast_rays
+from datasets.simulation.raycast import cast_rays, cast_rays_hit_edges
 from datasets.types import beam_angles_rad, wrap_angle_rad
 
 FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
+class LaserArtifacts:
+    """Effects of a real scanner beyond Gaussian range and bearing noise (see the module docstring)."""
+
+    max_incidence_rad: float = float(np.pi / 2)
+    incidence_fade_rad: float = 0.0
+    mixed_pixel_jump_m: float = 0.3
+    mixed_pixel_probability: float = 0.0
+    outlier_probability: float = 0.0
+    dropout_probability: float = 0.0
+
+
+@dataclass(frozen=True)
 class LaserSpec:
-    """A planar laser scanner: its beams, range limits and noise, and the topic it publishes on."""
+    """A planar laser scanner: its beams, range limits and noise, and the topic it publishes on.
+
+    ``artifacts``: grazing-incidence losses, mixed pixels, outliers and dropouts (None: none of them).
+    """
 
     topic: str
     num_beams: int
@@ -52,6 +81,7 @@ class LaserSpec:
     bearing_variance_rad2: float = 0.0
     frame_id: str = "laser"
     rate_hz: float = 10.0
+    artifacts: LaserArtifacts | None = None
 
     @classmethod
     def sweep(cls, topic: str, num_beams: int, fov_deg: float, **kwargs) -> LaserSpec:
@@ -69,7 +99,10 @@ class LaserSpec:
         return beam_angles_rad(self.angle_min_rad, self.angle_increment_rad, self.num_beams)
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        out = asdict(self)
+        if self.artifacts is None:  # specs without artifacts describe themselves as before they existed
+            del out["artifacts"]
+        return out
 
 
 @dataclass(frozen=True)
@@ -117,11 +150,60 @@ def simulate_ranges(
     bearing_err = rng.normal(0.0, np.sqrt(spec.bearing_variance_rad2), (n, b))
     range_err = rng.normal(0.0, np.sqrt(spec.range_variance_m2), (n, b))
     world_angles = poses[:, 2:3] + spec.angles_rad().astype(np.float64)[None, :] + bearing_err
-    true_m = cast_rays(poses[:, None, :2], world_angles, edges)
-    measured = true_m + range_err
+    if spec.artifacts is None:
+        true_m = cast_rays(poses[:, None, :2], world_angles, edges)
+        measured = true_m + range_err
+    else:
+        true_m, hit_edge = cast_rays_hit_edges(poses[:, None, :2], world_angles, edges)
+        measured = _with_artifacts(true_m, hit_edge, world_angles, edges, range_err, spec, rng)
     out = np.where(np.isfinite(true_m) & (measured < spec.range_max_m), measured, np.inf)
     out = np.where(out < spec.range_min_m, 0.0, out)
     return out.astype(np.float32)
+
+
+def _with_artifacts(
+    true_m: FloatArray,
+    hit_edge: NDArray[np.int64],
+    world_angles_rad: FloatArray,
+    edges: FloatArray,
+    range_err_m: FloatArray,
+    spec: LaserSpec,
+    rng: np.random.Generator,
+) -> FloatArray:
+    """(N, B) measured ranges with the :class:`LaserArtifacts` of ``spec``; ``inf`` where nothing returns."""
+    art = spec.artifacts
+    assert art is not None
+    n, b = true_m.shape
+    hit = hit_edge >= 0
+    e = np.asarray(edges, dtype=np.float64)[np.maximum(hit_edge, 0)]
+    ex, ey = e[..., 2] - e[..., 0], e[..., 3] - e[..., 1]
+    # |cos| of the angle between the beam and the surface normal (-ey, ex)
+    cos_inc = np.abs(np.cos(world_angles_rad) * -ey + np.sin(world_angles_rad) * ex) / np.maximum(
+        np.hypot(ex, ey), 1e-300
+    )
+    incidence = np.arccos(np.clip(cos_inc, 0.0, 1.0))
+    fade = max(art.incidence_fade_rad, 1e-12)
+    p_lost = np.clip((incidence - (art.max_incidence_rad - art.incidence_fade_rad)) / fade, 0.0, 1.0)
+    lost = hit & (rng.random((n, b)) < p_lost)
+    measured = true_m + range_err_m
+    # mixed pixels at depth edges between neighbouring beams (both must return)
+    left, right = true_m[:, :-1], true_m[:, 1:]
+    with np.errstate(invalid="ignore"):
+        edge = np.isfinite(left) & np.isfinite(right) & (np.abs(left - right) > art.mixed_pixel_jump_m)
+    mixed = edge & (rng.random((n, b - 1)) < art.mixed_pixel_probability)
+    which = rng.random((n, b - 1)) < 0.5  # the left or the right beam of the pair
+    frac = rng.random((n, b - 1))
+    with np.errstate(invalid="ignore"):
+        between = left + frac * (right - left)
+    cols = np.arange(b - 1)[None, :] + (~which).astype(np.int64)
+    rows = np.broadcast_to(np.arange(n)[:, None], cols.shape)
+    measured[rows[mixed], cols[mixed]] = between[mixed]
+    # outliers (short spurious returns) and dropouts
+    outlier = hit & (rng.random((n, b)) < art.outlier_probability)
+    spurious = spec.range_min_m + rng.random((n, b)) * np.maximum(true_m - spec.range_min_m, 0.0)
+    measured = np.where(outlier, spurious, measured)
+    dropped = rng.random((n, b)) < art.dropout_probability
+    return np.where(lost | dropped, np.inf, measured)
 
 
 def drift_odometry(
