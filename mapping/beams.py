@@ -30,7 +30,7 @@ class Beams:
     - ``origins_xy_m`` (M, 2): laser position ``P`` at the scan;
     - ``ends_xy_m`` (M, 2): end ``Q`` of the beam: the endpoint of a return, or the end of the free segment
       of a no-return beam;
-    - ``free_ends_xy_m`` (M, 2): end of the free part (a return's ``Q`` moved ``free_margin_m`` towards ``P``);
+    - ``free_ends_xy_m`` (M, 2): end of the free part (for a return, ``Q`` moved ``free_margin_m`` to ``P``);
     - ``is_hit`` (M,) bool: the beam has a return (its ``ends_xy_m`` is an occupied point);
     - ``ranges_m`` (M,), ``bearings_rad`` (M,): the measurement in the laser frame (no-return beams carry the
       free length as range);

@@ -38,8 +38,9 @@ class MappingConfig(BaseModel):
         description="bounds of hyperparameters by name (e.g. sigma: [0.01, 1000]); defaults per kernel",
     )
     noise_var: float = Field(
-        0.01, gt=0, le=10, description="GP noise variance sigma_n^2 (fixed, low: sec. 3.1)"
+        0.1, gt=0, le=10, description="GP noise variance sigma_n^2 (fixed; the start value if learnt)"
     )
+    learn_noise: bool = Field(False, description="learn sigma_n^2 with the kernel by eq. (9)")
     jitter: float = Field(
         1e-8,
         ge=0,

@@ -1,5 +1,8 @@
 """The GP occupancy map (GPFOL, paper section 3.5, Algorithm 1): query anywhere, render any grid.
 
+Rendered maps are :class:`mapping.exports.MapLayers` (raster convention of that module: row 0 at the lowest
+y, ``origin_xy_m`` the lower-left corner of cell (0, 0)).
+
 The map holds the beams (indexed) and the learnt :class:`~mapping.train.GPParams`; nothing is fitted per
 rendering, so a coarse map and a fine map of any bounds come from the same object ("anytime": coarse first,
 then fine, see :meth:`GPOccupancyMap.render_anytime`).
@@ -8,7 +11,6 @@ then fine, see :meth:`GPOccupancyMap.render_anytime`).
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -18,6 +20,7 @@ from numpy.typing import NDArray
 
 from mapping.beams import Beams
 from mapping.core import predict_batch
+from mapping.exports import MapLayers
 from mapping.neighbours import BeamIndex
 from mapping.train import GPParams
 
@@ -35,33 +38,6 @@ class Prediction:
     mean: FloatArray
     variance: FloatArray
     probability: FloatArray
-
-
-@dataclass(frozen=True)
-class MapLayers:
-    """A rendered map: (H, W) float32 layers, row i at y = origin_y + (i + 0.5) res, column j at
-    x = origin_x + (j + 0.5) res (``origin_xy_m`` is the lower-left corner of cell (0, 0), as in map_server)."""
-
-    probability: NDArray[np.float32]
-    mean: NDArray[np.float32]
-    variance: NDArray[np.float32]
-    origin_xy_m: FloatArray
-    resolution_m: float
-    seconds: float = 0.0
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self.probability.shape
-
-    @property
-    def extent(self) -> tuple[float, float, float, float]:
-        """(xmin, xmax, ymin, ymax) for matplotlib's imshow(origin='lower')."""
-        h, w = self.shape
-        x0, y0 = self.origin_xy_m
-        return x0, x0 + w * self.resolution_m, y0, y0 + h * self.resolution_m
-
-    def classified(self, occupied_threshold: float = 0.65, free_threshold: float = 0.35) -> NDArray[np.int8]:
-        return classify(self.probability, occupied_threshold, free_threshold)
 
 
 def classify(probability: NDArray, occupied_threshold: float = 0.65, free_threshold: float = 0.35) -> NDArray:
@@ -115,6 +91,7 @@ class GPOccupancyMap:
         t0 = time.perf_counter()
         self.index = BeamIndex.build(beams, index_cell_m, index_cell_m)
         self.index_seconds = time.perf_counter() - t0
+        self.last_render_seconds = 0.0
 
     def bounds_xy_m(self, margin_m: float = 1.0) -> tuple[float, float, float, float]:
         """Bounds of the occupied endpoints and laser origins, grown by ``margin_m``."""
@@ -169,13 +146,13 @@ class GPOccupancyMap:
         t0 = time.perf_counter()
         pred = self.query(pts, sort=False)
         seconds = time.perf_counter() - t0
+        self.last_render_seconds = seconds
         return MapLayers(
             probability=pred.probability.reshape(h, w).astype(np.float32),
             mean=pred.mean.reshape(h, w).astype(np.float32),
             variance=pred.variance.reshape(h, w).astype(np.float32),
-            origin_xy_m=origin,
             resolution_m=float(resolution_m),
-            seconds=seconds,
+            origin_xy_m=(float(origin[0]), float(origin[1])),
         )
 
     def render_anytime(
@@ -186,8 +163,3 @@ class GPOccupancyMap:
         """Maps from coarse to fine: a caller may stop after any of them."""
         for res in sorted(resolutions_m, reverse=True):
             yield self.render(bounds_xy_m, res)
-
-
-def default_threads() -> int:
-    """Threads numba uses (NUMBA_NUM_THREADS or the CPU count)."""
-    return int(os.environ.get("NUMBA_NUM_THREADS", os.cpu_count() or 1))

@@ -102,7 +102,7 @@ class NeuralNetworkKernel(Kernel):
     values: tuple[float, ...] = (1.0, 1.0, 3.0)
     name = "nn"
     names = ("sigma_f", "sigma_0", "sigma")
-    default_bounds = ((1e-2, 1e2), (1e-2, 1e2), (1e-2, 1e3))
+    default_bounds = ((1e-2, 1e2), (1e-2, 1e4), (1e-2, 1e5))
 
     def _parts(self, X, Y):
         sf, s0, su = self.values

@@ -105,9 +105,15 @@ def sample_training_queries(beams: Beams, n: int, seed: int = 0, beyond: float =
 
 
 def log_marginal_likelihood(
-    kernel: Kernel, X: FloatArray, y: FloatArray, noise_var: float, eval_gradient: bool = False
+    kernel: Kernel,
+    X: FloatArray,
+    y: FloatArray,
+    noise_var: float,
+    eval_gradient: bool = False,
+    noise_gradient: bool = False,
 ) -> float | tuple[float, FloatArray]:
-    """Sum over the local problems X (Q, n, 2), y (Q, n) of eq. (9), and its gradient w.r.t. ``kernel.theta``.
+    """Sum over the local problems X (Q, n, 2), y (Q, n) of eq. (9), and its gradient w.r.t. ``kernel.theta``
+    (with ``noise_gradient``, also w.r.t. ``log noise_var``, appended).
 
     Returns -inf (and a zero gradient) when a covariance matrix is not positive definite."""
     n = X.shape[-2]
@@ -119,7 +125,8 @@ def log_marginal_likelihood(
     try:
         L = np.linalg.cholesky(K)
     except np.linalg.LinAlgError:
-        return (-np.inf, np.zeros(kernel.theta.shape)) if eval_gradient else -np.inf
+        size = kernel.theta.shape[0] + int(noise_gradient)
+        return (-np.inf, np.zeros(size)) if eval_gradient else -np.inf
     Kinv = np.linalg.inv(K)
     a = np.einsum("...ij,...j->...i", Kinv, y)
     logdet = 2.0 * np.log(np.einsum("...ii->...i", L)).sum(axis=-1)
@@ -129,6 +136,8 @@ def log_marginal_likelihood(
         return total
     inner = a[..., :, None] * a[..., None, :] - Kinv
     grad = 0.5 * np.einsum("...ij,...ijp->...p", inner, dK).reshape(-1, dK.shape[-1]).sum(axis=0)
+    if noise_gradient:  # dK / d log(noise_var) = noise_var I
+        grad = np.r_[grad, 0.5 * noise_var * np.einsum("...ii->...", inner).sum()]
     return total, grad
 
 
@@ -140,38 +149,51 @@ def train_hyperparameters(
     maxfun: int = 300,
     maxiter: int = 100,
     seed: int = 0,
-) -> tuple[Kernel, dict[str, Any]]:
-    """Maximise eq. (9) over the kernel's log hyperparameters within its bounds: dual annealing with
-    ``maxfun`` evaluations (0 skips it), then L-BFGS-B with the analytic gradient."""
+    learn_noise: bool = False,
+    noise_bounds: tuple[float, float] = (1e-4, 1.0),
+) -> tuple[Kernel, float, dict[str, Any]]:
+    """Maximise eq. (9) over the kernel's log hyperparameters (and ``log sigma_n^2`` if ``learn_noise``)
+    within their bounds: dual annealing with ``maxfun`` evaluations (0 skips it), then L-BFGS-B with the
+    analytic gradient. Returns the trained kernel, the noise variance and a summary."""
     npts = X.shape[0] * X.shape[1]
+    p = kernel.theta.shape[0]
     bounds = kernel.bounds
+    x0 = kernel.theta
+    if learn_noise:
+        bounds = np.vstack([bounds, np.log(np.asarray(noise_bounds, dtype=np.float64))])
+        x0 = np.r_[x0, np.log(noise_var)]
     calls = {"anneal": 0, "lbfgs": 0}
 
-    def neg(theta: FloatArray) -> float:
+    def split(x: FloatArray) -> tuple[Kernel, float]:
+        return kernel.with_theta(x[:p]), (float(np.exp(x[p])) if learn_noise else noise_var)
+
+    def neg(x: FloatArray) -> float:
         calls["anneal"] += 1
-        v = log_marginal_likelihood(kernel.with_theta(theta), X, y, noise_var)
+        k, nv = split(x)
+        v = log_marginal_likelihood(k, X, y, nv)
         return 1e10 if not np.isfinite(v) else -v / npts
 
-    def neg_grad(theta: FloatArray) -> tuple[float, FloatArray]:
+    def neg_grad(x: FloatArray) -> tuple[float, FloatArray]:
         calls["lbfgs"] += 1
-        v, g = log_marginal_likelihood(kernel.with_theta(theta), X, y, noise_var, eval_gradient=True)
+        k, nv = split(x)
+        v, g = log_marginal_likelihood(k, X, y, nv, eval_gradient=True, noise_gradient=learn_noise)
         if not np.isfinite(v):
-            return 1e10, np.zeros_like(theta)
+            return 1e10, np.zeros_like(x)
         return -v / npts, -g / npts
 
     t0 = time.perf_counter()
-    theta0 = np.clip(kernel.theta, bounds[:, 0], bounds[:, 1])
-    start = theta0
+    x0 = np.clip(x0, bounds[:, 0], bounds[:, 1])
+    start = x0
     if maxfun > 0:
         res = optimize.dual_annealing(
-            neg, bounds=bounds, maxfun=maxfun, seed=seed, no_local_search=True, x0=theta0
+            neg, bounds=bounds, maxfun=maxfun, seed=seed, no_local_search=True, x0=x0
         )
-        start = res.x if res.fun <= neg(theta0) else theta0
+        start = res.x if res.fun <= neg(x0) else x0
     res = optimize.minimize(
         neg_grad, x0=start, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": maxiter}
     )
     best = res.x if np.isfinite(res.fun) else start
-    trained = kernel.with_theta(best)
+    trained, nv = split(best)
     info = {
         "lml_per_point": float(-res.fun),
         "anneal_evaluations": calls["anneal"],
@@ -180,7 +202,7 @@ def train_hyperparameters(
         "points": int(npts),
         "problems": int(X.shape[0]),
     }
-    return trained, info
+    return trained, nv, info
 
 
 def train_gp(
@@ -188,7 +210,7 @@ def train_gp(
     kernel_name: str = "nn",
     kernel_values: dict[str, float] | None = None,
     kernel_bounds: dict[str, tuple[float, float]] | None = None,
-    noise_var: float = 0.01,
+    noise_var: float = 0.1,
     k_occ: int = 15,
     k_free: int = 15,
     n_scans: int = 50,
@@ -197,6 +219,7 @@ def train_gp(
     maxiter: int = 100,
     seed: int = 0,
     index_cell_m: float = 0.25,
+    learn_noise: bool = False,
 ) -> GPParams:
     """Learn kernel hyperparameters and the PLS link from the first ``n_scans`` distinct scans of ``beams``
     (in their scan order)."""
@@ -208,8 +231,10 @@ def train_gp(
     if X.shape[0] == 0:
         raise ValueError(f"no training neighbourhood with {k_occ} + {k_free} neighbours in the first scans")
     kernel = make_kernel(kernel_name, kernel_values, kernel_bounds)
-    trained, info = train_hyperparameters(kernel, X, y, noise_var, maxfun, maxiter, seed)
-    mu, var = loo_predictions(trained, X, y, noise_var)
+    trained, nv, info = train_hyperparameters(
+        kernel, X, y, noise_var, maxfun, maxiter, seed, learn_noise=learn_noise
+    )
+    mu, var = loo_predictions(trained, X, y, nv)
     alpha, beta = fit_pls(mu, var, y)
     info.update({"scans": [int(scans[0]), int(scans[-1])], "n_scans": len(scans), "seed": seed})
-    return GPParams(trained, noise_var, alpha, beta, info)
+    return GPParams(trained, nv, alpha, beta, info)
