@@ -37,13 +37,13 @@ KERNEL_MATERN52 = 3
 SQRT2 = math.sqrt(2.0)
 
 
-@nb.njit(cache=True, fastmath=False, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _phi(z):
     """Standard normal CDF."""
     return 0.5 * math.erfc(-z / SQRT2)
 
 
-@nb.njit(cache=True, fastmath=True)
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
 def _kernel_blocks(kid, kp, X, n, K, ks, s):
     """Fill K[:n, :n] (upper and lower) and ks[:n] for training inputs X[:n] (centred on the query, which is
     the origin) and return k(x*, x*). ``s`` (n,) is scratch."""
@@ -79,7 +79,7 @@ def _kernel_blocks(kid, kp, X, n, K, ks, s):
     return sf2
 
 
-@nb.njit(cache=True, fastmath=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", fastmath=True, inline="always")
 def _stationary(kid, c, r2):
     if kid == KERNEL_SE:
         return math.exp(-0.5 * c * r2)
@@ -89,7 +89,7 @@ def _stationary(kid, c, r2):
     return (1.0 + u + u * u / 3.0) * math.exp(-u)
 
 
-@nb.njit(cache=True, fastmath=True)
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
 def _cholesky_inplace(A, n, diag):
     """Lower Cholesky factor of the symmetric A[:n, :n] written into its lower triangle (row-major,
     Cholesky-Banachiewicz); the upper triangle keeps A, ``diag`` (n,) must hold A's diagonal so that a failed
@@ -108,7 +108,7 @@ def _cholesky_inplace(A, n, diag):
     return True
 
 
-@nb.njit(cache=True, fastmath=True)
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
 def _forward(L, n, b, out):
     """Solve L out = b for the lower-triangular L[:n, :n]."""
     for i in range(n):
@@ -118,7 +118,7 @@ def _forward(L, n, b, out):
         out[i] = acc / L[i, i]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _solve_local(K, ks, kss, y, n, noise_var, jitter, diag, v, w):
     """Mean and variance of the local GP (eqs. 2-3) from K[:n,:n] (noise-free), ks, kss and labels y.
 
@@ -157,35 +157,143 @@ def _solve_local(K, ks, kss, y, n, noise_var, jitter, diag, v, w):
     return mu, var
 
 
-@nb.njit(cache=True)
-def _training_inputs(qx, qy, hx, hy, ido, no, sx, sy, sdx, sdy, idf, tf, nf, X, y):
+@nb.njit(cache=True, error_model="numpy")
+def _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y):
     """Training inputs centred on the query: occupied endpoints (+1) then free points s + t d (-1)."""
     for i in range(no):
         j = ido[i]
-        X[i, 0] = hx[j] - qx
-        X[i, 1] = hy[j] - qy
+        X[i, 0] = pts[j, 0] - qx
+        X[i, 1] = pts[j, 1] - qy
         y[i] = 1.0
     for i in range(nf):
         j = idf[i]
-        X[no + i, 0] = sx[j] + tf[i] * sdx[j] - qx
-        X[no + i, 1] = sy[j] + tf[i] * sdy[j] - qy
+        X[no + i, 0] = seg[j, 0] + tf[i] * seg[j, 2] - qx
+        X[no + i, 1] = seg[j, 1] + tf[i] * seg[j, 3] - qy
         y[no + i] = -1.0
     return no + nf
 
 
-@nb.njit(cache=True, parallel=True)
+# ---------------------------------------------------------------------------------------------------------
+# The fast path: LANES queries solved together, the lane index innermost, so that the kernel blocks, the
+# Cholesky factorisation and the solves run as SIMD instructions over 4 queries at once.
+
+LANES = 16
+
+# fdlibm's rational approximation of asin on [0, 0.5] (and, through asin(x) = pi/2 - 2 asin(sqrt((1-x)/2)),
+# on [0.5, 1]); written without branches so that loops over lanes vectorise.
+_PS0 = 1.66666666666666657415e-01
+_PS1 = -3.25565818622400915405e-01
+_PS2 = 2.01212532134862925881e-01
+_PS3 = -4.00555345006794114027e-02
+_PS4 = 7.91534994289814532176e-04
+_PS5 = 3.47933107596021167570e-05
+_QS1 = -2.40339491173441421878e00
+_QS2 = 2.02094576023350569471e00
+_QS3 = -6.88283971605453293030e-01
+_QS4 = 7.70381505559019352791e-02
+_PIO2 = 1.57079632679489655800e00
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True, inline="always")
+def asin_fast(x):
+    """asin(x) for x in [-1, 1] without branches (absolute error ~2e-16, tested against numpy).
+
+    With z = |x| and t = min(z^2, (1 - z)/2), u = sqrt(t) is z on [0, 1/2] and sqrt((1 - z)/2) above, where
+    asin(z) = pi/2 - 2 asin(u); ``big`` (0 or 1) blends the two branches."""
+    z = abs(x)
+    t = min(z * z, 0.5 * (1.0 - z))
+    p = t * (_PS0 + t * (_PS1 + t * (_PS2 + t * (_PS3 + t * (_PS4 + t * _PS5)))))
+    q = 1.0 + t * (_QS1 + t * (_QS2 + t * (_QS3 + t * _QS4)))
+    u = math.sqrt(t)
+    a = u + u * (p / q)
+    big = 0.5 + 0.5 * math.copysign(1.0, z - 0.5)
+    return math.copysign(a + big * (_PIO2 - 3.0 * a), x)
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _kernel_lanes(kid, kp, XL, mask, n, K, ks, s):
+    """Lower triangle of K[:n, :n, lane] (noise-free, pads zeroed) and ks[:n, lane] for LANES local problems
+    with inputs XL (n, 2, LANES) centred on their queries; ``mask`` (n, LANES) is 1 for real points, 0 for
+    pads. ``s`` (n, LANES) is scratch."""
+    sf2 = kp[0]
+    if kid == KERNEL_NN:
+        c0 = kp[1]
+        c1 = kp[2]
+        sq = 1.0 / math.sqrt(1.0 + c0)
+        for i in range(n):
+            for lane in range(LANES):
+                x = XL[i, 0, lane]
+                y = XL[i, 1, lane]
+                s[i, lane] = 1.0 / math.sqrt(1.0 + c0 + c1 * (x * x + y * y))
+        for i in range(n):
+            for j in range(i + 1):
+                for lane in range(LANES):
+                    a = (c0 + c1 * (XL[i, 0, lane] * XL[j, 0, lane] + XL[i, 1, lane] * XL[j, 1, lane])) * (
+                        s[i, lane] * s[j, lane]
+                    )
+                    a = min(max(a, -1.0), 1.0)
+                    K[i, j, lane] = sf2 * asin_fast(a) * (mask[i, lane] * mask[j, lane])
+            for lane in range(LANES):
+                ks[i, lane] = sf2 * asin_fast(c0 * s[i, lane] * sq) * mask[i, lane]
+        return
+    for i in range(n):
+        for j in range(i + 1):
+            for lane in range(LANES):
+                dx = XL[i, 0, lane] - XL[j, 0, lane]
+                dy = XL[i, 1, lane] - XL[j, 1, lane]
+                K[i, j, lane] = (
+                    sf2 * _stationary(kid, kp[1], dx * dx + dy * dy) * (mask[i, lane] * mask[j, lane])
+                )
+        for lane in range(LANES):
+            x = XL[i, 0, lane]
+            y = XL[i, 1, lane]
+            ks[i, lane] = sf2 * _stationary(kid, kp[1], x * x + y * y) * mask[i, lane]
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _cholesky_lanes(K, n, invd, acc, ok):
+    """In-place lower Cholesky of LANES matrices K[:n, :n, lane] (lower triangles); ``invd`` (n, LANES)
+    receives 1 / L_ii. ``ok[lane]`` is set False where a pivot is not positive (that lane is garbage)."""
+    for i in range(n):
+        for j in range(i + 1):
+            for lane in range(LANES):
+                acc[lane] = K[i, j, lane]
+            for m in range(j):
+                for lane in range(LANES):
+                    acc[lane] -= K[i, m, lane] * K[j, m, lane]
+            if i == j:
+                for lane in range(LANES):
+                    v = acc[lane]
+                    bad = not (v > 0.0)
+                    ok[lane] = ok[lane] and not bad
+                    d = math.sqrt(v if not bad else 1.0)
+                    K[i, i, lane] = d
+                    invd[i, lane] = 1.0 / d
+            else:
+                for lane in range(LANES):
+                    K[i, j, lane] = acc[lane] * invd[j, lane]
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _forward_lanes(K, n, invd, b, out):
+    """Solve L out[:, lane] = b[:, lane] for the LANES lower factors in K."""
+    for i in range(n):
+        for lane in range(LANES):
+            out[i, lane] = b[i, lane]
+        for m in range(i):
+            for lane in range(LANES):
+                out[i, lane] -= K[i, m, lane] * out[m, lane]
+        for lane in range(LANES):
+            out[i, lane] *= invd[i, lane]
+
+
+@nb.njit(cache=True, error_model="numpy", parallel=True)
 def predict_batch(
     queries,
-    hx,
-    hy,
+    pts,
     p_geom,
     p_start,
-    p_items,
-    sx,
-    sy,
-    sdx,
-    sdy,
-    sinv,
+    seg,
     s_geom,
     s_start,
     s_items,
@@ -204,13 +312,16 @@ def predict_batch(
 ):
     """GPFOL prediction at (Q, 2) ``queries``: writes mean (eq. 2), latent variance (eq. 3) and p(occ).
 
-    ``hx, hy``: occupied endpoints; ``sx, sy, sdx, sdy, sinv``: free segments (start, direction, 1/|d|^2);
-    ``*_geom`` = (origin x, origin y, cell, nx, ny) and ``*_start``, ``*_items`` of their grid indexes.
-    Queries are processed in chunks of ``chunk`` in parallel; scratch is allocated once per chunk.
+    ``pts`` (H, 2): occupied endpoints in cell order; ``seg`` (M, 5): free segments (start, direction,
+    1/|d|^2); ``*_geom`` = (origin x, origin y, cell, nx, ny), ``*_start`` and ``s_items`` of their grid
+    indexes (see :mod:`mapping.index`).
+    Chunks of ``chunk`` queries run in parallel (scratch allocated once per chunk); inside a chunk, LANES
+    queries are solved together. A lane whose Cholesky fails is redone alone with jitter (``_solve_local``).
     """
     nq = queries.shape[0]
     nchunks = (nq + chunk - 1) // chunk
     nmax = k_occ + k_free
+    kss = _prior_var(kid, kp)
     for c in nb.prange(nchunks):
         d2o = np.empty(max(k_occ, 1))
         ido = np.empty(max(k_occ, 1), np.int64)
@@ -220,6 +331,22 @@ def predict_batch(
         tf = np.empty(max(k_free, 1))
         X = np.empty((nmax, 2))
         y = np.empty(nmax)
+        XL = np.zeros((nmax, 2, LANES))
+        yL = np.zeros((nmax, LANES))
+        mask = np.zeros((nmax, LANES))
+        KL = np.empty((nmax, nmax, LANES))
+        ksL = np.empty((nmax, LANES))
+        sL = np.empty((nmax, LANES))
+        invd = np.empty((nmax, LANES))
+        vL = np.empty((nmax, LANES))
+        wL = np.empty((nmax, LANES))
+        acc = np.empty(LANES)
+        ok = np.empty(LANES, np.bool_)
+        counts = np.zeros(LANES, np.int64)
+        warm_o = np.empty(max(k_occ, 1), np.int64)
+        warm_f = np.empty(max(k_free, 1), np.int64)
+        n_warm_o = 0
+        n_warm_f = 0
         K = np.empty((nmax, nmax))
         ks = np.empty(nmax)
         s = np.empty(nmax)
@@ -228,38 +355,97 @@ def predict_batch(
         w = np.empty(nmax)
         lo = c * chunk
         hi = min(lo + chunk, nq)
-        for q in range(lo, hi):
-            qx = queries[q, 0]
-            qy = queries[q, 1]
-            no = knn_points(
-                qx, qy, hx, hy, p_geom[0], p_geom[1], p_geom[2], int(p_geom[3]), int(p_geom[4]),
-                p_start, p_items, k_occ, d2o, ido, to,
-            )  # fmt: skip
-            nf = knn_segments(
-                qx, qy, sx, sy, sdx, sdy, sinv, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]),
-                int(s_geom[4]), s_start, s_items, k_free, d2f, idf, tf,
-            )  # fmt: skip
-            n = _training_inputs(qx, qy, hx, hy, ido, no, sx, sy, sdx, sdy, idf, tf, nf, X, y)
-            kss = _kernel_blocks(kid, kp, X, n, K, ks, s)
-            mu, var = _solve_local(K, ks, kss, y, n, noise_var, jitter, diag, v, w)
-            out_mean[q] = mu
-            out_var[q] = var
-            out_prob[q] = _phi((alpha * mu + beta) / math.sqrt(1.0 + alpha * alpha * (var + noise_var)))
+        for base in range(lo, hi, LANES):
+            nl = min(LANES, hi - base)
+            nfill = 0
+            for lane in range(LANES):
+                counts[lane] = 0
+                if lane >= nl:
+                    continue
+                q = base + lane
+                qx = queries[q, 0]
+                qy = queries[q, 1]
+                no = knn_points(
+                    qx, qy, pts, p_geom[0], p_geom[1], p_geom[2], int(p_geom[3]), int(p_geom[4]),
+                    p_start, k_occ, d2o, ido, to, warm_o, n_warm_o,
+                )  # fmt: skip
+                nf = knn_segments(
+                    qx, qy, seg, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]), int(s_geom[4]),
+                    s_start, s_items, k_free, d2f, idf, tf, warm_f, n_warm_f,
+                )  # fmt: skip
+                # the next query is usually close by: its search starts from these neighbours
+                for i in range(no):
+                    warm_o[i] = ido[i]
+                for i in range(nf):
+                    warm_f[i] = idf[i]
+                n_warm_o = no
+                n_warm_f = nf
+                n = _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y)
+                counts[lane] = n
+                nfill = max(nfill, n)
+                for i in range(n):
+                    XL[i, 0, lane] = X[i, 0]
+                    XL[i, 1, lane] = X[i, 1]
+                    yL[i, lane] = y[i]
+                    mask[i, lane] = 1.0
+            if nfill == 0:
+                for lane in range(nl):
+                    out_mean[base + lane] = 0.0
+                    out_var[base + lane] = kss
+                    out_prob[base + lane] = _phi(beta / math.sqrt(1.0 + alpha * alpha * (kss + noise_var)))
+                continue
+            for lane in range(LANES):  # pads: zero inputs and labels, identity rows in K
+                for i in range(counts[lane], nfill):
+                    XL[i, 0, lane] = 0.0
+                    XL[i, 1, lane] = 0.0
+                    yL[i, lane] = 0.0
+                    mask[i, lane] = 0.0
+            _kernel_lanes(kid, kp, XL, mask, nfill, KL, ksL, sL)
+            for i in range(nfill):
+                for lane in range(LANES):
+                    KL[i, i, lane] += noise_var * mask[i, lane] + (1.0 - mask[i, lane])
+            for lane in range(LANES):
+                ok[lane] = True
+            _cholesky_lanes(KL, nfill, invd, acc, ok)
+            _forward_lanes(KL, nfill, invd, ksL, vL)
+            _forward_lanes(KL, nfill, invd, yL, wL)
+            for lane in range(nl):
+                q = base + lane
+                if ok[lane]:
+                    mu = 0.0
+                    qq = 0.0
+                    for i in range(nfill):
+                        mu += vL[i, lane] * wL[i, lane]
+                        qq += vL[i, lane] * vL[i, lane]
+                    var = min(max(kss - qq, 0.0), kss)
+                else:  # rare: redo this query alone, with jitter retries
+                    n = counts[lane]
+                    for i in range(n):
+                        X[i, 0] = XL[i, 0, lane]
+                        X[i, 1] = XL[i, 1, lane]
+                        y[i] = yL[i, lane]
+                    kss1 = _kernel_blocks(kid, kp, X, n, K, ks, s)
+                    mu, var = _solve_local(K, ks, kss1, y, n, noise_var, jitter, diag, v, w)
+                out_mean[q] = mu
+                out_var[q] = var
+                out_prob[q] = _phi((alpha * mu + beta) / math.sqrt(1.0 + alpha * alpha * (var + noise_var)))
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, error_model="numpy")
+def _prior_var(kid, kp):
+    """k(x*, x*) in query-centred coordinates."""
+    if kid == KERNEL_NN:
+        return kp[0] * math.asin(kp[1] / (1.0 + kp[1]))
+    return kp[0]
+
+
+@nb.njit(cache=True, error_model="numpy", parallel=True)
 def gather_batch(
     queries,
-    hx,
-    hy,
+    pts,
     p_geom,
     p_start,
-    p_items,
-    sx,
-    sy,
-    sdx,
-    sdy,
-    sinv,
+    seg,
     s_geom,
     s_start,
     s_items,
@@ -282,12 +468,12 @@ def gather_batch(
         qx = queries[q, 0]
         qy = queries[q, 1]
         no = knn_points(
-            qx, qy, hx, hy, p_geom[0], p_geom[1], p_geom[2], int(p_geom[3]), int(p_geom[4]),
-            p_start, p_items, k_occ, d2o, ido, to,
+            qx, qy, pts, p_geom[0], p_geom[1], p_geom[2], int(p_geom[3]), int(p_geom[4]),
+            p_start, k_occ, d2o, ido, to, ido, 0,
         )  # fmt: skip
         nf = knn_segments(
-            qx, qy, sx, sy, sdx, sdy, sinv, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]),
-            int(s_geom[4]), s_start, s_items, k_free, d2f, idf, tf,
+            qx, qy, seg, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]), int(s_geom[4]),
+            s_start, s_items, k_free, d2f, idf, tf, idf, 0,
         )  # fmt: skip
         for i in range(k_occ):
             out_occ[q, i] = ido[i] if i < no else -1

@@ -64,7 +64,7 @@ def build_point_index(points_xy_m: FloatArray, cell_m: float) -> GridIndex:
     return GridIndex(origin, cell_m, (nx, ny), start, order)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _traverse_count(x0, y0, x1, y1, ox, oy, cell, nx, ny, out_cells, fill):
     """Cells crossed by segment (x0,y0)-(x1,y1) (Amanatides & Woo); writes them to out_cells when fill."""
     gx0 = (x0 - ox) / cell
@@ -113,7 +113,7 @@ def _traverse_count(x0, y0, x1, y1, ox, oy, cell, nx, ny, out_cells, fill):
     return n
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def _segment_cells(p0, p1, ox, oy, cell, nx, ny):
     m = p0.shape[0]
     counts = np.empty(m, np.int64)
@@ -153,7 +153,7 @@ def build_segment_index(starts_xy_m: FloatArray, ends_xy_m: FloatArray, cell_m: 
 # Compiled k-NN. Results are kept sorted by squared distance in (k,) buffers; the return value is the count.
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _insert(best_d2, best_id, best_t, count, k, d2, idx, t):
     """Insert (d2, idx, t) into the sorted top-k buffers; returns the new count."""
     if count == k:
@@ -174,7 +174,15 @@ def _insert(best_d2, best_id, best_t, count, k, d2, idx, t):
     return count
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _listed(ids, count, i):
+    for j in range(count):
+        if ids[j] == i:
+            return True
+    return False
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _cell_d2(gx, gy, ix, iy):
     """Squared distance (in cell units) from grid point (gx, gy) to cell (ix, iy)."""
     ddx = max(max(ix - gx, gx - (ix + 1)), 0.0)
@@ -182,12 +190,20 @@ def _cell_d2(gx, gy, ix, iy):
     return ddx * ddx + ddy * ddy
 
 
-@nb.njit(cache=True)
-def knn_points(qx, qy, px, py, ox, oy, cell, nx, ny, cell_start, items, k, best_d2, best_id, best_t):
-    """The k points nearest (qx, qy); writes sorted squared distances and ids; returns how many were found."""
+@nb.njit(cache=True, error_model="numpy")
+def knn_points(qx, qy, pts, ox, oy, cell, nx, ny, cell_start, k, best_d2, best_id, best_t, warm, n_warm):
+    """The k points nearest (qx, qy) among (P, 2) ``pts`` stored in cell order (cell c holds
+    ``pts[cell_start[c]:cell_start[c + 1]]``); writes sorted squared distances and indices into ``pts``;
+    returns how many were found. ``warm[:n_warm]`` are distinct candidate indices tried first (e.g. the
+    neighbours of the previous, nearby query): they only make the search faster, never change its result."""
     count = 0
-    if k == 0 or items.shape[0] == 0:
+    if k == 0 or pts.shape[0] == 0:
         return 0
+    for w in range(n_warm):
+        i = warm[w]
+        dx = pts[i, 0] - qx
+        dy = pts[i, 1] - qy
+        count = _insert(best_d2, best_id, best_t, count, k, dx * dx + dy * dy, i, 0.0)
     gx = (qx - ox) / cell
     gy = (qy - oy) / cell
     cx = math.floor(gx)
@@ -207,12 +223,13 @@ def knn_points(qx, qy, px, py, ox, oy, cell, nx, ny, cell_start, items, k, best_
             while iy <= y_hi:
                 if 0 <= iy < ny and (count < k or _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]):
                     c = ix * ny + iy
-                    for e in range(cell_start[c], cell_start[c + 1]):
-                        i = items[e]
-                        dx = px[i] - qx
-                        dy = py[i] - qy
+                    for i in range(cell_start[c], cell_start[c + 1]):
+                        dx = pts[i, 0] - qx
+                        dy = pts[i, 1] - qy
                         d2 = dx * dx + dy * dy
                         if count < k or d2 < best_d2[k - 1]:
+                            if n_warm > 0 and _listed(best_id, count, i):
+                                continue
                             count = _insert(best_d2, best_id, best_t, count, k, d2, i, 0.0)
                 if step == 0:
                     break
@@ -232,16 +249,26 @@ def knn_points(qx, qy, px, py, ox, oy, cell, nx, ny, cell_start, items, k, best_
     return count
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy")
 def knn_segments(
-    qx, qy, sx, sy, dx, dy, inv_len2, ox, oy, cell, nx, ny, cell_start, items, k, best_d2, best_id, best_t
+    qx, qy, seg, ox, oy, cell, nx, ny, cell_start, items, k, best_d2, best_id, best_t, warm, n_warm
 ):
     """The k segments nearest (qx, qy): squared distances, ids and the clamped parameter t in [0, 1] of the
-    closest point ``s + t d`` (eqs. 13-14); returns how many were found. A segment listed in several cells is
-    counted once."""
+    closest point ``s + t d`` (eqs. 13-14); returns how many were found. ``seg`` (M, 5) holds one segment
+    per row, (start x, start y, d x, d y, 1 / |d|^2), so a candidate costs one cache line. A segment listed
+    in several cells is counted once. ``warm[:n_warm]``: distinct candidates tried first (as in
+    :func:`knn_points`)."""
     count = 0
     if k == 0 or items.shape[0] == 0:
         return 0
+    for w in range(n_warm):
+        i = warm[w]
+        rx = qx - seg[i, 0]
+        ry = qy - seg[i, 1]
+        t = min(max((rx * seg[i, 2] + ry * seg[i, 3]) * seg[i, 4], 0.0), 1.0)
+        ex = rx - t * seg[i, 2]
+        ey = ry - t * seg[i, 3]
+        count = _insert(best_d2, best_id, best_t, count, k, ex * ex + ey * ey, i, t)
     gx = (qx - ox) / cell
     gy = (qy - oy) / cell
     cx = math.floor(gx)
@@ -262,22 +289,18 @@ def knn_segments(
                     c = ix * ny + iy
                     for e in range(cell_start[c], cell_start[c + 1]):
                         i = items[e]
-                        rx = qx - sx[i]
-                        ry = qy - sy[i]
-                        t = (rx * dx[i] + ry * dy[i]) * inv_len2[i]
+                        rx = qx - seg[i, 0]
+                        ry = qy - seg[i, 1]
+                        ddx = seg[i, 2]
+                        ddy = seg[i, 3]
+                        t = (rx * ddx + ry * ddy) * seg[i, 4]
                         t = min(max(t, 0.0), 1.0)
-                        ex = rx - t * dx[i]
-                        ey = ry - t * dy[i]
+                        ex = rx - t * ddx
+                        ey = ry - t * ddy
                         d2 = ex * ex + ey * ey
                         if count < k or d2 < best_d2[k - 1]:
-                            if r > 0:
-                                dup = False
-                                for j in range(count):
-                                    if best_id[j] == i:
-                                        dup = True
-                                        break
-                                if dup:
-                                    continue
+                            if (r > 0 or n_warm > 0) and _listed(best_id, count, i):
+                                continue
                             count = _insert(best_d2, best_id, best_t, count, k, d2, i, t)
                 if step == 0:
                     break

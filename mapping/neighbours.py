@@ -23,19 +23,18 @@ def _geom(index: GridIndex) -> FloatArray:
 
 @dataclass(frozen=True)
 class BeamIndex:
-    """Searchable training data: occupied endpoints ``hit_x/hit_y`` (H,) and free segments (M,) given by start
-    ``seg_x/seg_y``, direction ``seg_dx/seg_dy`` (start to free end) and ``seg_inv_len2`` = 1/|d|^2 (0 for a
-    degenerate segment); ``hit_beam`` (H,) maps endpoints back to beams."""
+    """Searchable training data.
+
+    - ``hit_xy`` (H, 2): occupied endpoints sorted by cell of ``point_index`` (its ``items`` are then
+      ``0..H-1``); ``hit_beam`` (H,) maps them back to beams;
+    - ``seg`` (M, 5): one row per beam, (start x, start y, d x, d y, 1/|d|^2) with d = free end - start
+      (1/|d|^2 = 0 for a degenerate segment); ``segment_index`` lists the beams crossing each cell.
+    """
 
     beams: Beams
-    hit_x: FloatArray
-    hit_y: FloatArray
+    hit_xy: FloatArray
     hit_beam: NDArray[np.int64]
-    seg_x: FloatArray
-    seg_y: FloatArray
-    seg_dx: FloatArray
-    seg_dy: FloatArray
-    seg_inv_len2: FloatArray
+    seg: FloatArray
     point_index: GridIndex
     segment_index: GridIndex
 
@@ -43,42 +42,57 @@ class BeamIndex:
     def build(cls, beams: Beams, point_cell_m: float = 0.25, segment_cell_m: float = 0.25) -> BeamIndex:
         hit_beam = np.flatnonzero(beams.is_hit)
         hits = beams.ends_xy_m[hit_beam]
+        point_index = build_point_index(hits, point_cell_m)
+        order = point_index.items.astype(np.int64)
+        point_index = GridIndex(
+            point_index.origin_xy_m,
+            point_index.cell_m,
+            point_index.shape,
+            point_index.cell_start,
+            np.arange(order.size, dtype=np.int32),
+        )
         d = beams.free_ends_xy_m - beams.origins_xy_m
         l2 = np.einsum("ij,ij->i", d, d)
         inv = np.zeros_like(l2)
         np.divide(1.0, l2, out=inv, where=l2 > 0)
+        seg = np.ascontiguousarray(np.column_stack([beams.origins_xy_m, d, inv]))
         return cls(
             beams=beams,
-            hit_x=np.ascontiguousarray(hits[:, 0]),
-            hit_y=np.ascontiguousarray(hits[:, 1]),
-            hit_beam=hit_beam,
-            seg_x=np.ascontiguousarray(beams.origins_xy_m[:, 0]),
-            seg_y=np.ascontiguousarray(beams.origins_xy_m[:, 1]),
-            seg_dx=np.ascontiguousarray(d[:, 0]),
-            seg_dy=np.ascontiguousarray(d[:, 1]),
-            seg_inv_len2=inv,
-            point_index=build_point_index(hits, point_cell_m),
+            hit_xy=np.ascontiguousarray(hits[order]),
+            hit_beam=hit_beam[order],
+            seg=seg,
+            point_index=point_index,
             segment_index=build_segment_index(beams.origins_xy_m, beams.free_ends_xy_m, segment_cell_m),
         )
+
+    @property
+    def hit_x(self) -> FloatArray:
+        return self.hit_xy[:, 0]
+
+    @property
+    def hit_y(self) -> FloatArray:
+        return self.hit_xy[:, 1]
+
+    @property
+    def seg_x(self) -> FloatArray:
+        return self.seg[:, 0]
+
+    @property
+    def seg_y(self) -> FloatArray:
+        return self.seg[:, 1]
+
+    @property
+    def seg_dx(self) -> FloatArray:
+        return self.seg[:, 2]
+
+    @property
+    def seg_dy(self) -> FloatArray:
+        return self.seg[:, 3]
 
     def core_args(self) -> tuple:
         """The index arguments of :func:`mapping.core.predict_batch` / ``gather_batch``, in order."""
         p, s = self.point_index, self.segment_index
-        return (
-            self.hit_x,
-            self.hit_y,
-            _geom(p),
-            p.cell_start,
-            p.items,
-            self.seg_x,
-            self.seg_y,
-            self.seg_dx,
-            self.seg_dy,
-            self.seg_inv_len2,
-            _geom(s),
-            s.cell_start,
-            s.items,
-        )
+        return (self.hit_xy, _geom(p), p.cell_start, self.seg, _geom(s), s.cell_start, s.items)
 
     def gather(
         self, queries_xy_m: FloatArray, k_occ: int, k_free: int

@@ -132,3 +132,31 @@ def test_classify_thresholds() -> None:
     np.testing.assert_array_equal(classify(p, 0.65, 0.35), [0, 0, -1, 1, 1])
     with pytest.raises(ValueError):
         classify(p, 0.3, 0.6)
+
+
+def test_failed_cholesky_falls_back_to_jitter() -> None:
+    """Zero noise and coincident free points make K singular: the lane is redone alone with jitter."""
+    ranges = [np.full(20, 2.0)] * 3
+    angles = [np.linspace(-0.2, 0.2, 20)] * 3
+    poses = np.zeros((3, 3))  # three identical scans: every training point has exact duplicates
+    beams = beams_from_scans(ranges, angles, 0.1, 10.0, poses, free_margin_m=0.1)
+    params = GPParams(make_kernel("se", {"length_scale": 0.5}), noise_var=0.0, alpha=1.0, beta=0.0)
+    pred = GPOccupancyMap(beams, params, jitter=1e-6).query(np.array([[-1.0, 0.0], [1.0, 0.0], [2.5, 0.1]]))
+    assert np.all(np.isfinite(pred.mean)) and np.all(np.isfinite(pred.variance))
+    assert np.all((pred.variance >= 0) & (pred.variance <= 1.0))
+
+
+def test_asin_fast_matches_numpy() -> None:
+    import numba as nb
+
+    from mapping.core import asin_fast
+
+    @nb.njit
+    def many(x):
+        out = np.empty_like(x)
+        for i in range(x.size):
+            out[i] = asin_fast(x[i])
+        return out
+
+    x = np.r_[np.linspace(-1, 1, 200_001), -1.0, -0.5, 0.0, 0.5, 1.0, 1e-300, -1e-17]
+    np.testing.assert_allclose(many(x), np.arcsin(x), rtol=0, atol=1e-15)
