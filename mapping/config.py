@@ -53,7 +53,12 @@ class MappingConfig(BaseModel):
     free_margin_m: float = Field(
         0.1, ge=0, le=10, description="free segments of returns stop this short of the endpoint"
     )
-    index_cell_m: float = Field(0.25, gt=0, le=100, description="cell size of the neighbour-search grids")
+    index_cell_m: float | None = Field(
+        None,
+        gt=0,
+        le=100,
+        description="cell size of the neighbour-search grids (null: from the data density)",
+    )
     params_file: Path | None = Field(
         None, description="learnt GP parameters (JSON) to reuse instead of training ('trained in advance')"
     )

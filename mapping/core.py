@@ -441,42 +441,43 @@ def _prior_var(kid, kp):
 
 @nb.njit(cache=True, error_model="numpy", parallel=True)
 def gather_batch(
-    queries,
-    pts,
-    p_geom,
-    p_start,
-    seg,
-    s_geom,
-    s_start,
-    s_items,
-    k_occ,
-    k_free,
-    out_occ,
-    out_free,
-    out_t,
+    queries, pts, p_geom, p_start, seg, s_geom, s_start, s_items, k_occ, k_free, out_occ, out_free, out_t
 ):
     """Neighbour ids of (Q, 2) queries: ``out_occ`` (Q, k_occ) endpoint ids, ``out_free`` (Q, k_free) segment
-    ids and ``out_t`` (Q, k_free) positions of the free points along them; -1 pads missing neighbours."""
+    ids and ``out_t`` (Q, k_free) positions of the free points along them; -1 pads missing neighbours.
+    Same search as :func:`predict_batch` (chunks of 256 in parallel, each search warm-started from the
+    previous query's neighbours), so that timing it isolates the neighbour search."""
     nq = queries.shape[0]
-    for q in nb.prange(nq):
+    chunk = 256
+    nchunks = (nq + chunk - 1) // chunk
+    for c in nb.prange(nchunks):
         d2o = np.empty(max(k_occ, 1))
         to = np.empty(max(k_occ, 1))
         ido = np.empty(max(k_occ, 1), np.int64)
         d2f = np.empty(max(k_free, 1))
         idf = np.empty(max(k_free, 1), np.int64)
         tf = np.empty(max(k_free, 1))
-        qx = queries[q, 0]
-        qy = queries[q, 1]
-        no = knn_points(
-            qx, qy, pts, p_geom[0], p_geom[1], p_geom[2], int(p_geom[3]), int(p_geom[4]),
-            p_start, k_occ, d2o, ido, to, ido, 0,
-        )  # fmt: skip
-        nf = knn_segments(
-            qx, qy, seg, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]), int(s_geom[4]),
-            s_start, s_items, k_free, d2f, idf, tf, idf, 0,
-        )  # fmt: skip
-        for i in range(k_occ):
-            out_occ[q, i] = ido[i] if i < no else -1
-        for i in range(k_free):
-            out_free[q, i] = idf[i] if i < nf else -1
-            out_t[q, i] = tf[i] if i < nf else 0.0
+        warm_o = np.empty(max(k_occ, 1), np.int64)
+        warm_f = np.empty(max(k_free, 1), np.int64)
+        no = 0
+        nf = 0
+        for q in range(c * chunk, min((c + 1) * chunk, nq)):
+            for i in range(no):
+                warm_o[i] = ido[i]
+            for i in range(nf):
+                warm_f[i] = idf[i]
+            qx = queries[q, 0]
+            qy = queries[q, 1]
+            no = knn_points(
+                qx, qy, pts, p_geom[0], p_geom[1], p_geom[2], int(p_geom[3]), int(p_geom[4]),
+                p_start, k_occ, d2o, ido, to, warm_o, no,
+            )  # fmt: skip
+            nf = knn_segments(
+                qx, qy, seg, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]), int(s_geom[4]),
+                s_start, s_items, k_free, d2f, idf, tf, warm_f, nf,
+            )  # fmt: skip
+            for i in range(k_occ):
+                out_occ[q, i] = ido[i] if i < no else -1
+            for i in range(k_free):
+                out_free[q, i] = idf[i] if i < nf else -1
+                out_t[q, i] = tf[i] if i < nf else 0.0

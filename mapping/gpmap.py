@@ -79,7 +79,7 @@ class GPOccupancyMap:
         k_occ: int = 15,
         k_free: int = 15,
         jitter: float = 1e-8,
-        index_cell_m: float = 0.25,
+        index_cell_m: float | None = None,
         chunk: int = 256,
     ) -> None:
         self.beams = beams

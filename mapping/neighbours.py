@@ -21,6 +21,17 @@ def _geom(index: GridIndex) -> FloatArray:
     )
 
 
+def auto_cell_m(beams: Beams, items_per_cell: float = 16.0, lo: float = 0.1, hi: float = 10.0) -> float:
+    """A cell size for the neighbour grids: about ``items_per_cell`` endpoints per cell if they were spread
+    evenly over their bounding box (the Intel lab: 0.37 m; a sparse street of 28 scans: metres), so that
+    a sparse map is not searched through millions of empty cells; clamped to [lo, hi]."""
+    pts = beams.hit_xy_m if beams.is_hit.any() else beams.ends_xy_m
+    if pts.shape[0] == 0:
+        return hi
+    span = np.maximum(pts.max(axis=0) - pts.min(axis=0), lo)
+    return float(np.clip(np.sqrt(items_per_cell * span[0] * span[1] / pts.shape[0]), lo, hi))
+
+
 @dataclass(frozen=True)
 class BeamIndex:
     """Searchable training data.
@@ -39,7 +50,13 @@ class BeamIndex:
     segment_index: GridIndex
 
     @classmethod
-    def build(cls, beams: Beams, point_cell_m: float = 0.25, segment_cell_m: float = 0.25) -> BeamIndex:
+    def build(
+        cls, beams: Beams, point_cell_m: float | None = None, segment_cell_m: float | None = None
+    ) -> BeamIndex:
+        """Index ``beams``; cell sizes default to :func:`auto_cell_m`."""
+        auto = auto_cell_m(beams)
+        point_cell_m = point_cell_m or auto
+        segment_cell_m = segment_cell_m or auto
         hit_beam = np.flatnonzero(beams.is_hit)
         hits = beams.ends_xy_m[hit_beam]
         point_index = build_point_index(hits, point_cell_m)

@@ -218,7 +218,7 @@ def train_gp(
     maxfun: int = 300,
     maxiter: int = 100,
     seed: int = 0,
-    index_cell_m: float = 0.25,
+    index_cell_m: float | None = None,
     learn_noise: bool = False,
 ) -> GPParams:
     """Learn kernel hyperparameters and the PLS link from the first ``n_scans`` distinct scans of ``beams``

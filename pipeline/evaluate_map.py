@@ -85,7 +85,7 @@ def build_grid(beams: Beams, cfg: MappingConfig, bounds=None) -> OccupancyGrid:
     return OccupancyGrid.build(beams, g.resolution_m, bounds, g.p_occupied, g.p_free, g.p_clamp)
 
 
-def _reference_laser_poses(rec: Recording, input_path: Path) -> np.ndarray:
+def reference_laser_poses(rec: Recording, input_path: Path) -> np.ndarray:
     if rec.scans is None or len(rec.scans) == 0:
         raise DatasetError(f"{input_path}: no laser scans to map")
     if rec.reference is None:
@@ -206,7 +206,7 @@ def evaluate_map(
     cfg = config.mapping
     input_path = Path(input_path)
     rec = open_dataset(input_path, config.input)
-    laser_poses = _reference_laser_poses(rec, input_path)
+    laser_poses = reference_laser_poses(rec, input_path)
     gt_path = Path(str(input_path) + ".gt.npz")
     if gt_path.is_file():
         protocol = "ground_truth"
