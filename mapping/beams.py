@@ -103,7 +103,7 @@ def beams_from_scans(
     range_max_m: NDArray | Sequence[float] | float,
     poses_xytheta: FloatArray,
     laser_in_base_xytheta: FloatArray | None = None,
-    no_return_free_length_m: float = 5.0,
+    no_return_free_length_m: float | None = None,
     free_margin_m: float = 0.0,
     source_index: NDArray | None = None,
     scan_indices: Sequence[int] | NDArray | None = None,
@@ -113,7 +113,8 @@ def beams_from_scans(
     ``ranges_m`` / ``angles_rad``: N arrays of (B_i,) beams in the laser frame; ``range_min_m`` /
     ``range_max_m``: scalars or (N,); ``poses_xytheta`` (N, 3): base poses in the world;
     ``laser_in_base_xytheta`` (3,): laser mounting (default: the laser is the base). No-return beams give a
-    free segment of ``no_return_free_length_m`` (0 drops them) and no endpoint. ``scan_indices`` (N,) numbers
+    free segment of ``no_return_free_length_m`` (None: the scan's ``range_max``; 0 drops them) and no
+    endpoint. ``scan_indices`` (N,) numbers
     the scans (default 0..N-1), e.g. their indices in a longer sequence.
     """
     n = len(ranges_m)
@@ -136,8 +137,10 @@ def beams_from_scans(
     with np.errstate(invalid="ignore"):
         no_return = ~np.isfinite(r) | (r >= rmax[scan_of])
         hit = ~no_return & (r >= rmin[scan_of])
-    keep = hit | (no_return & (no_return_free_length_m > 0))
-    length = np.where(hit, r, no_return_free_length_m)
+    nr = no_return_free_length_m
+    no_return_len = rmax[scan_of] if nr is None else np.full(r.shape, nr)
+    keep = hit | (no_return & (no_return_len > 0))
+    length = np.where(hit, r, no_return_len)
     r, a, length, hit, scan_of, beam_of = (
         r[keep],
         a[keep],
@@ -170,7 +173,7 @@ def beams_from_scan_sequence(
     scans,
     poses_xytheta: FloatArray,
     laser_in_base_xytheta: FloatArray | None = None,
-    no_return_free_length_m: float = 5.0,
+    no_return_free_length_m: float | None = None,
     free_margin_m: float = 0.0,
     scan_indices: Sequence[int] | NDArray | None = None,
 ) -> Beams:

@@ -47,8 +47,12 @@ class MappingConfig(BaseModel):
         le=1,
         description="relative jitter added to K's diagonal when a Cholesky fails (retried x10)",
     )
-    no_return_free_length_m: float = Field(
-        2.0, ge=0, le=1000, description="free segment of a beam without return (0 ignores such beams)"
+    no_return_free_length_m: float | None = Field(
+        2.0,
+        ge=0,
+        le=1000,
+        description="free segment of a beam without return (null: the scan's range_max; 0: none). Real "
+        "lasers miss glass and dark surfaces, so a short length; a simulated laser can use range_max",
     )
     free_margin_m: float = Field(
         0.1, ge=0, le=10, description="free segments of returns stop this short of the endpoint"
