@@ -22,8 +22,9 @@ from pipeline.bench_mapping import DATA_DIR, INTEL
 from pipeline.config import load_config
 from pipeline.evaluate_map import build_gp_map, build_grid, fit_params, make_beams, reference_laser_poses
 
-OUT_DIR = Path(__file__).resolve().parent.parent / "docs" / "figures" / "mapping"
-SIMULATION_CONFIG = Path(__file__).resolve().parent.parent / "mapping" / "configs" / "noise_free_simulation.yaml"
+REPO = Path(__file__).resolve().parent.parent
+OUT_DIR = REPO / "docs" / "figures" / "mapping"
+SIMULATION_CONFIG = REPO / "mapping" / "configs" / "noise_free_simulation.yaml"
 
 
 def robust_bounds(points_xy_m: np.ndarray, margin_m: float = 1.0, q: float = 0.2) -> tuple[float, ...]:
