@@ -215,36 +215,37 @@ def _kernel_lanes(kid, kp, XL, mask, n, K, ks, s):
     """Lower triangle of K[:n, :n, lane] (noise-free, pads zeroed) and ks[:n, lane] for LANES local problems
     with inputs XL (n, 2, LANES) centred on their queries; ``mask`` (n, LANES) is 1 for real points, 0 for
     pads. ``s`` (n, LANES) is scratch."""
+    nlanes = XL.shape[2]  # a run-time trip count: LLVM vectorises the lane loops instead of unrolling them
     sf2 = kp[0]
     if kid == KERNEL_NN:
         c0 = kp[1]
         c1 = kp[2]
         sq = 1.0 / math.sqrt(1.0 + c0)
         for i in range(n):
-            for lane in range(LANES):
+            for lane in range(nlanes):
                 x = XL[i, 0, lane]
                 y = XL[i, 1, lane]
                 s[i, lane] = 1.0 / math.sqrt(1.0 + c0 + c1 * (x * x + y * y))
         for i in range(n):
             for j in range(i + 1):
-                for lane in range(LANES):
+                for lane in range(nlanes):
                     a = (c0 + c1 * (XL[i, 0, lane] * XL[j, 0, lane] + XL[i, 1, lane] * XL[j, 1, lane])) * (
                         s[i, lane] * s[j, lane]
                     )
                     a = min(max(a, -1.0), 1.0)
                     K[i, j, lane] = sf2 * asin_fast(a) * (mask[i, lane] * mask[j, lane])
-            for lane in range(LANES):
+            for lane in range(nlanes):
                 ks[i, lane] = sf2 * asin_fast(c0 * s[i, lane] * sq) * mask[i, lane]
         return
     for i in range(n):
         for j in range(i + 1):
-            for lane in range(LANES):
+            for lane in range(nlanes):
                 dx = XL[i, 0, lane] - XL[j, 0, lane]
                 dy = XL[i, 1, lane] - XL[j, 1, lane]
                 K[i, j, lane] = (
                     sf2 * _stationary(kid, kp[1], dx * dx + dy * dy) * (mask[i, lane] * mask[j, lane])
                 )
-        for lane in range(LANES):
+        for lane in range(nlanes):
             x = XL[i, 0, lane]
             y = XL[i, 1, lane]
             ks[i, lane] = sf2 * _stationary(kid, kp[1], x * x + y * y) * mask[i, lane]
@@ -254,15 +255,16 @@ def _kernel_lanes(kid, kp, XL, mask, n, K, ks, s):
 def _cholesky_lanes(K, n, invd, acc, ok):
     """In-place lower Cholesky of LANES matrices K[:n, :n, lane] (lower triangles); ``invd`` (n, LANES)
     receives 1 / L_ii. ``ok[lane]`` is set False where a pivot is not positive (that lane is garbage)."""
+    nlanes = K.shape[2]
     for i in range(n):
         for j in range(i + 1):
-            for lane in range(LANES):
+            for lane in range(nlanes):
                 acc[lane] = K[i, j, lane]
             for m in range(j):
-                for lane in range(LANES):
+                for lane in range(nlanes):
                     acc[lane] -= K[i, m, lane] * K[j, m, lane]
             if i == j:
-                for lane in range(LANES):
+                for lane in range(nlanes):
                     v = acc[lane]
                     bad = not (v > 0.0)
                     ok[lane] = ok[lane] and not bad
@@ -270,20 +272,21 @@ def _cholesky_lanes(K, n, invd, acc, ok):
                     K[i, i, lane] = d
                     invd[i, lane] = 1.0 / d
             else:
-                for lane in range(LANES):
+                for lane in range(nlanes):
                     K[i, j, lane] = acc[lane] * invd[j, lane]
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath=True)
 def _forward_lanes(K, n, invd, b, out):
     """Solve L out[:, lane] = b[:, lane] for the LANES lower factors in K."""
+    nlanes = K.shape[2]
     for i in range(n):
-        for lane in range(LANES):
+        for lane in range(nlanes):
             out[i, lane] = b[i, lane]
         for m in range(i):
-            for lane in range(LANES):
+            for lane in range(nlanes):
                 out[i, lane] -= K[i, m, lane] * out[m, lane]
-        for lane in range(LANES):
+        for lane in range(nlanes):
             out[i, lane] *= invd[i, lane]
 
 

@@ -18,21 +18,13 @@ from mapping.exports import MapLayers
 from mapping.figures import plot_classified, plot_layer, plot_roc, plot_street_panels
 from mapping.grid import OccupancyGrid
 from mapping.metrics import roc_auc, roc_curve
-from pipeline.bench_mapping import DATA_DIR, INTEL
+from pipeline.bench_mapping import DATA_DIR, INTEL, robust_bounds
 from pipeline.config import load_config
 from pipeline.evaluate_map import build_gp_map, build_grid, fit_params, make_beams, reference_laser_poses
 
 REPO = Path(__file__).resolve().parent.parent
 OUT_DIR = REPO / "docs" / "figures" / "mapping"
 SIMULATION_CONFIG = REPO / "mapping" / "configs" / "noise_free_simulation.yaml"
-
-
-def robust_bounds(points_xy_m: np.ndarray, margin_m: float = 1.0, q: float = 0.2) -> tuple[float, ...]:
-    """Bounds of the central (100 - 2q)% of the points in x and y, grown by ``margin_m`` (drops the few
-    returns seen far away through windows)."""
-    lo = np.percentile(points_xy_m, q, axis=0) - margin_m
-    hi = np.percentile(points_xy_m, 100 - q, axis=0) + margin_m
-    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
 
 def intel_figures(out: Path) -> dict[str, Any]:
