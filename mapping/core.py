@@ -15,6 +15,10 @@ GPPOL swaps these for the kernels integrated over the training input distributio
 ``_solve_local`` (Cholesky, mean, variance). A GPPOL driver reuses the neighbour search and
 ``_solve_local``, and replaces the two middle steps.
 
+Compiled code is cached on disk (``cache=True``). Numba's cache does not notice edits to compiled functions
+of OTHER modules that a cached function calls (e.g. :mod:`mapping.index` from :func:`predict_batch`): after
+editing ``mapping/index.py``, delete ``mapping/__pycache__/*.nb[ic]``.
+
 Kernel ids and packed parameters (see :meth:`mapping.kernels.Kernel.packed`):
 0 neural network (eq. 7): ``(sf2, 2 sigma_0^2, 2 sigma^2)``; 1 squared exponential: ``(sf2, 1/l^2)``;
 2 Matern 3/2: ``(sf2, sqrt(3)/l)``; 3 Matern 5/2: ``(sf2, sqrt(5)/l)``.
@@ -297,6 +301,7 @@ def predict_batch(
     p_geom,
     p_start,
     seg,
+    ecopy,
     s_geom,
     s_start,
     s_items,
@@ -316,8 +321,8 @@ def predict_batch(
     """GPFOL prediction at (Q, 2) ``queries``: writes mean (eq. 2), latent variance (eq. 3) and p(occ).
 
     ``pts`` (H, 2): occupied endpoints in cell order; ``seg`` (M, 5): free segments (start, direction,
-    1/|d|^2); ``*_geom`` = (origin x, origin y, cell, nx, ny), ``*_start`` and ``s_items`` of their grid
-    indexes (see :mod:`mapping.index`).
+    1/|d|^2) and ``ecopy`` their float32 copies per index entry; ``*_geom`` = (origin x, origin y, cell, nx,
+    ny, most items in a cell), ``*_start`` and ``s_items`` of their grid indexes (see :mod:`mapping.index`).
     Chunks of ``chunk`` queries run in parallel (scratch allocated once per chunk); inside a chunk, LANES
     queries are solved together. A lane whose Cholesky fails is redone alone with jitter (``_solve_local``).
     """
@@ -348,6 +353,8 @@ def predict_batch(
         counts = np.zeros(LANES, np.int64)
         warm_o = np.empty(max(k_occ, 1), np.int64)
         warm_f = np.empty(max(k_free, 1), np.int64)
+        sbuf = np.empty(max(int(s_geom[5]), 1), np.float32)
+        pbuf = np.empty(max(int(p_geom[5]), 1))
         n_warm_o = 0
         n_warm_f = 0
         K = np.empty((nmax, nmax))
@@ -370,11 +377,11 @@ def predict_batch(
                 qy = queries[q, 1]
                 no = knn_points(
                     qx, qy, pts, p_geom[0], p_geom[1], p_geom[2], int(p_geom[3]), int(p_geom[4]),
-                    p_start, k_occ, d2o, ido, to, warm_o, n_warm_o,
+                    p_start, k_occ, d2o, ido, to, warm_o, n_warm_o, pbuf,
                 )  # fmt: skip
                 nf = knn_segments(
-                    qx, qy, seg, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]), int(s_geom[4]),
-                    s_start, s_items, k_free, d2f, idf, tf, warm_f, n_warm_f,
+                    qx, qy, seg, ecopy, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]), int(s_geom[4]),
+                    s_start, s_items, k_free, d2f, idf, tf, warm_f, n_warm_f, sbuf,
                 )  # fmt: skip
                 # the next query is usually close by: its search starts from these neighbours
                 for i in range(no):
@@ -444,8 +451,9 @@ def _prior_var(kid, kp):
 
 @nb.njit(cache=True, error_model="numpy", parallel=True)
 def gather_batch(
-    queries, pts, p_geom, p_start, seg, s_geom, s_start, s_items, k_occ, k_free, out_occ, out_free, out_t
-):
+    queries, pts, p_geom, p_start, seg, ecopy, s_geom, s_start, s_items, k_occ, k_free, out_occ, out_free,
+    out_t,
+):  # fmt: skip
     """Neighbour ids of (Q, 2) queries: ``out_occ`` (Q, k_occ) endpoint ids, ``out_free`` (Q, k_free) segment
     ids and ``out_t`` (Q, k_free) positions of the free points along them; -1 pads missing neighbours.
     Same search as :func:`predict_batch` (chunks of 256 in parallel, each search warm-started from the
@@ -462,6 +470,8 @@ def gather_batch(
         tf = np.empty(max(k_free, 1))
         warm_o = np.empty(max(k_occ, 1), np.int64)
         warm_f = np.empty(max(k_free, 1), np.int64)
+        sbuf = np.empty(max(int(s_geom[5]), 1), np.float32)
+        pbuf = np.empty(max(int(p_geom[5]), 1))
         no = 0
         nf = 0
         for q in range(c * chunk, min((c + 1) * chunk, nq)):
@@ -473,11 +483,11 @@ def gather_batch(
             qy = queries[q, 1]
             no = knn_points(
                 qx, qy, pts, p_geom[0], p_geom[1], p_geom[2], int(p_geom[3]), int(p_geom[4]),
-                p_start, k_occ, d2o, ido, to, warm_o, no,
+                p_start, k_occ, d2o, ido, to, warm_o, no, pbuf,
             )  # fmt: skip
             nf = knn_segments(
-                qx, qy, seg, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]), int(s_geom[4]),
-                s_start, s_items, k_free, d2f, idf, tf, warm_f, nf,
+                qx, qy, seg, ecopy, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]), int(s_geom[4]),
+                s_start, s_items, k_free, d2f, idf, tf, warm_f, nf, sbuf,
             )  # fmt: skip
             for i in range(k_occ):
                 out_occ[q, i] = ido[i] if i < no else -1

@@ -133,6 +133,22 @@ def _segment_cells(p0, p1, ox, oy, cell, nx, ny):
     return counts, cells
 
 
+def segment_entry_copies(index: GridIndex, seg: FloatArray) -> NDArray[np.float32]:
+    """(5, E) float32 copies of the (M, 5) segments ``seg`` for every entry of a segment ``index``, in entry
+    order, with the start relative to the centre of the entry's cell (for :func:`knn_segments`)."""
+    nx, ny = index.shape
+    counts = np.diff(index.cell_start)
+    cell_of = np.repeat(np.arange(nx * ny), counts)
+    centre_x = index.origin_xy_m[0] + (cell_of // ny + 0.5) * index.cell_m
+    centre_y = index.origin_xy_m[1] + (cell_of % ny + 0.5) * index.cell_m
+    rows = seg[index.items]
+    out = np.empty((5, rows.shape[0]), np.float32)
+    out[0] = rows[:, 0] - centre_x
+    out[1] = rows[:, 1] - centre_y
+    out[2:] = rows[:, 2:].T
+    return out
+
+
 def build_segment_index(starts_xy_m: FloatArray, ends_xy_m: FloatArray, cell_m: float) -> GridIndex:
     """Index of (M, 2)-(M, 2) segments: every cell lists the segments crossing it."""
     p0 = np.ascontiguousarray(starts_xy_m, dtype=np.float64).reshape(-1, 2)
@@ -191,11 +207,12 @@ def _cell_d2(gx, gy, ix, iy):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def knn_points(qx, qy, pts, ox, oy, cell, nx, ny, cell_start, k, best_d2, best_id, best_t, warm, n_warm):
+def knn_points(qx, qy, pts, ox, oy, cell, nx, ny, cell_start, k, best_d2, best_id, best_t, warm, n_warm, buf):
     """The k points nearest (qx, qy) among (P, 2) ``pts`` stored in cell order (cell c holds
     ``pts[cell_start[c]:cell_start[c + 1]]``); writes sorted squared distances and indices into ``pts``;
     returns how many were found. ``warm[:n_warm]`` are distinct candidate indices tried first (e.g. the
-    neighbours of the previous, nearby query): they only make the search faster, never change its result."""
+    neighbours of the previous, nearby query): they only make the search faster, never change its result.
+    ``buf`` (as long as the fullest cell) receives each cell's distances from a vectorised pass."""
     count = 0
     if k == 0 or pts.shape[0] == 0:
         return 0
@@ -206,6 +223,22 @@ def knn_points(qx, qy, pts, ox, oy, cell, nx, ny, cell_start, k, best_d2, best_i
         count = _insert(best_d2, best_id, best_t, count, k, dx * dx + dy * dy, i, 0.0)
     gx = (qx - ox) / cell
     gy = (qy - oy) / cell
+    if count == k:
+        # warm start: every better point lies within the current k-th distance; scan that square of cells
+        lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, nx, ny)
+        for ix in range(lo_x, hi_x + 1):
+            for iy in range(lo_y, hi_y + 1):
+                if _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]:
+                    c = ix * ny + iy
+                    start = cell_start[c]
+                    end = cell_start[c + 1]
+                    if end > start:
+                        _cell_point_d2(qx, qy, pts, start, end, buf)
+                        for i in range(start, end):
+                            d2 = buf[i - start]
+                            if d2 < best_d2[k - 1] and not _listed(best_id, count, i):
+                                count = _insert(best_d2, best_id, best_t, count, k, d2, i, 0.0)
+        return count
     cx = math.floor(gx)
     cy = math.floor(gy)
     # rings beyond this radius lie entirely outside the grid
@@ -223,14 +256,16 @@ def knn_points(qx, qy, pts, ox, oy, cell, nx, ny, cell_start, k, best_d2, best_i
             while iy <= y_hi:
                 if 0 <= iy < ny and (count < k or _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]):
                     c = ix * ny + iy
-                    for i in range(cell_start[c], cell_start[c + 1]):
-                        dx = pts[i, 0] - qx
-                        dy = pts[i, 1] - qy
-                        d2 = dx * dx + dy * dy
-                        if count < k or d2 < best_d2[k - 1]:
-                            if n_warm > 0 and _listed(best_id, count, i):
-                                continue
-                            count = _insert(best_d2, best_id, best_t, count, k, d2, i, 0.0)
+                    start = cell_start[c]
+                    end = cell_start[c + 1]
+                    if end > start:
+                        _cell_point_d2(qx, qy, pts, start, end, buf)
+                        for i in range(start, end):
+                            d2 = buf[i - start]
+                            if count < k or d2 < best_d2[k - 1]:
+                                if n_warm > 0 and _listed(best_id, count, i):
+                                    continue
+                                count = _insert(best_d2, best_id, best_t, count, k, d2, i, 0.0)
                 if step == 0:
                     break
                 iy += step
@@ -249,15 +284,115 @@ def knn_points(qx, qy, pts, ox, oy, cell, nx, ny, cell_start, k, best_d2, best_i
     return count
 
 
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _cell_point_d2(qx, qy, pts, start, end, buf):
+    """Squared distances from (qx, qy) to ``pts[start:end]`` into ``buf`` (vectorised)."""
+    for i in range(start, end):
+        dx = pts[i, 0] - qx
+        dy = pts[i, 1] - qy
+        buf[i - start] = dx * dx + dy * dy
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _square(gx, gy, radius, nx, ny):
+    """Cell ranges (inclusive) of the square of half-side ``radius`` (cells) around (gx, gy), in the grid."""
+    return (
+        max(math.floor(gx - radius), 0),
+        min(math.floor(gx + radius), nx - 1),
+        max(math.floor(gy - radius), 0),
+        min(math.floor(gy + radius), ny - 1),
+    )
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _segment_cell(
+    qx, qy, seg, ecopy, ox, oy, cell, ny, cell_start, items, k, best_d2, best_id, best_t, buf, ix, iy, count,
+    check_dup,
+):  # fmt: skip
+    """Offer the segments of cell (ix, iy) to the top-k buffers (float32 screen, exact float64 check)."""
+    c = ix * ny + iy
+    start = cell_start[c]
+    end = cell_start[c + 1]
+    if start == end:
+        return count
+    ccx = ox + (ix + 0.5) * cell
+    ccy = oy + (iy + 0.5) * cell
+    _cell_segment_d2(np.float32(qx - ccx), np.float32(qy - ccy), ecopy, start, end, buf)
+    lim2 = _screen_limit(best_d2, count, k)
+    for e in range(start, end):
+        if buf[e - start] > lim2:
+            continue
+        i = items[e]
+        rx = qx - seg[i, 0]
+        ry = qy - seg[i, 1]
+        ddx = seg[i, 2]
+        ddy = seg[i, 3]
+        t = min(max((rx * ddx + ry * ddy) * seg[i, 4], 0.0), 1.0)
+        ex = rx - t * ddx
+        ey = ry - t * ddy
+        d2 = ex * ex + ey * ey
+        if count < k or d2 < best_d2[k - 1]:
+            if check_dup and _listed(best_id, count, i):
+                continue
+            count = _insert(best_d2, best_id, best_t, count, k, d2, i, t)
+            lim2 = _screen_limit(best_d2, count, k)
+    return count
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _screen_limit(best_d2, count, k):
+    """Float32 screening bound: (current k-th distance + 0.1 mm)^2, or infinity while fewer than k."""
+    if count < k:
+        return np.inf
+    lim = math.sqrt(best_d2[k - 1]) + 1e-4
+    return lim * lim
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _cell_segment_d2(qrx, qry, ecopy, start, end, buf):
+    """Squared distances (float32, vectorised) from the query (relative to the cell centre) to the segments
+    listed in entries ``start:end``, into ``buf``."""
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    for e in range(start, end):
+        rx = qrx - ecopy[0, e]
+        ry = qry - ecopy[1, e]
+        ddx = ecopy[2, e]
+        ddy = ecopy[3, e]
+        t = min(max((rx * ddx + ry * ddy) * ecopy[4, e], zero), one)
+        ex = rx - t * ddx
+        ey = ry - t * ddy
+        buf[e - start] = ex * ex + ey * ey
+
+
 @nb.njit(cache=True, error_model="numpy")
 def knn_segments(
-    qx, qy, seg, ox, oy, cell, nx, ny, cell_start, items, k, best_d2, best_id, best_t, warm, n_warm
+    qx,
+    qy,
+    seg,
+    ecopy,
+    ox,
+    oy,
+    cell,
+    nx,
+    ny,
+    cell_start,
+    items,
+    k,
+    best_d2,
+    best_id,
+    best_t,
+    warm,
+    n_warm,
+    buf,
 ):
     """The k segments nearest (qx, qy): squared distances, ids and the clamped parameter t in [0, 1] of the
     closest point ``s + t d`` (eqs. 13-14); returns how many were found. ``seg`` (M, 5) holds one segment
-    per row, (start x, start y, d x, d y, 1 / |d|^2), so a candidate costs one cache line. A segment listed
-    in several cells is counted once. ``warm[:n_warm]``: distinct candidates tried first (as in
-    :func:`knn_points`)."""
+    per row, (start x, start y, d x, d y, 1 / |d|^2); ``ecopy`` (5, E) float32 repeats them per index entry
+    (start relative to the entry's cell centre), so that a cell is first screened by a vectorised float32
+    pass (into ``buf``, as long as the fullest cell) and only candidates within the current k-th distance
+    plus 0.1 mm are evaluated exactly, in float64: the result is exact. A segment listed in several cells is
+    counted once. ``warm[:n_warm]``: distinct candidates tried first (as in :func:`knn_points`)."""
     count = 0
     if k == 0 or items.shape[0] == 0:
         return 0
@@ -271,6 +406,16 @@ def knn_segments(
         count = _insert(best_d2, best_id, best_t, count, k, ex * ex + ey * ey, i, t)
     gx = (qx - ox) / cell
     gy = (qy - oy) / cell
+    if count == k:  # warm start: scan the square of cells within the current k-th distance
+        lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, nx, ny)
+        for ix in range(lo_x, hi_x + 1):
+            for iy in range(lo_y, hi_y + 1):
+                if _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]:
+                    count = _segment_cell(
+                        qx, qy, seg, ecopy, ox, oy, cell, ny, cell_start, items, k, best_d2, best_id, best_t,
+                        buf, ix, iy, count, True,
+                    )  # fmt: skip
+        return count
     cx = math.floor(gx)
     cy = math.floor(gy)
     rmax = max(max(cx, nx - 1 - cx), max(cy, ny - 1 - cy))
@@ -286,22 +431,10 @@ def knn_segments(
             iy = y_lo
             while iy <= y_hi:
                 if 0 <= iy < ny and (count < k or _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]):
-                    c = ix * ny + iy
-                    for e in range(cell_start[c], cell_start[c + 1]):
-                        i = items[e]
-                        rx = qx - seg[i, 0]
-                        ry = qy - seg[i, 1]
-                        ddx = seg[i, 2]
-                        ddy = seg[i, 3]
-                        t = (rx * ddx + ry * ddy) * seg[i, 4]
-                        t = min(max(t, 0.0), 1.0)
-                        ex = rx - t * ddx
-                        ey = ry - t * ddy
-                        d2 = ex * ex + ey * ey
-                        if count < k or d2 < best_d2[k - 1]:
-                            if (r > 0 or n_warm > 0) and _listed(best_id, count, i):
-                                continue
-                            count = _insert(best_d2, best_id, best_t, count, k, d2, i, t)
+                    count = _segment_cell(
+                        qx, qy, seg, ecopy, ox, oy, cell, ny, cell_start, items, k, best_d2, best_id, best_t,
+                        buf, ix, iy, count, r > 0 or n_warm > 0,
+                    )  # fmt: skip
                 if step == 0:
                     break
                 iy += step

@@ -10,15 +10,16 @@ from numpy.typing import NDArray
 
 from mapping.beams import Beams
 from mapping.core import gather_batch
-from mapping.index import GridIndex, build_point_index, build_segment_index
+from mapping.index import GridIndex, build_point_index, build_segment_index, segment_entry_copies
 
 FloatArray = NDArray[np.float64]
 
 
 def _geom(index: GridIndex) -> FloatArray:
-    return np.array(
-        [index.origin_xy_m[0], index.origin_xy_m[1], index.cell_m, index.shape[0], index.shape[1]]
-    )
+    """(origin x, origin y, cell, nx, ny, most items in a cell) of an index, for the compiled core."""
+    most = int(np.diff(index.cell_start).max()) if index.cell_start.size > 1 else 0
+    o = index.origin_xy_m
+    return np.array([o[0], o[1], index.cell_m, index.shape[0], index.shape[1], most], dtype=np.float64)
 
 
 def auto_cell_m(beams: Beams, items_per_cell: float = 16.0, lo: float = 0.1, hi: float = 10.0) -> float:
@@ -39,7 +40,8 @@ class BeamIndex:
     - ``hit_xy`` (H, 2): occupied endpoints sorted by cell of ``point_index`` (its ``items`` are then
       ``0..H-1``); ``hit_beam`` (H,) maps them back to beams;
     - ``seg`` (M, 5): one row per beam, (start x, start y, d x, d y, 1/|d|^2) with d = free end - start
-      (1/|d|^2 = 0 for a degenerate segment); ``segment_index`` lists the beams crossing each cell.
+      (1/|d|^2 = 0 for a degenerate segment); ``segment_index`` lists the beams crossing each cell and
+      ``seg_entries`` (5, E) float32 copies them per entry (see :func:`mapping.index.knn_segments`).
     """
 
     beams: Beams
@@ -48,6 +50,7 @@ class BeamIndex:
     seg: FloatArray
     point_index: GridIndex
     segment_index: GridIndex
+    seg_entries: NDArray[np.float32]
 
     @classmethod
     def build(
@@ -73,13 +76,15 @@ class BeamIndex:
         inv = np.zeros_like(l2)
         np.divide(1.0, l2, out=inv, where=l2 > 0)
         seg = np.ascontiguousarray(np.column_stack([beams.origins_xy_m, d, inv]))
+        segment_index = build_segment_index(beams.origins_xy_m, beams.free_ends_xy_m, segment_cell_m)
         return cls(
             beams=beams,
             hit_xy=np.ascontiguousarray(hits[order]),
             hit_beam=hit_beam[order],
             seg=seg,
             point_index=point_index,
-            segment_index=build_segment_index(beams.origins_xy_m, beams.free_ends_xy_m, segment_cell_m),
+            segment_index=segment_index,
+            seg_entries=segment_entry_copies(segment_index, seg),
         )
 
     @property
@@ -109,7 +114,16 @@ class BeamIndex:
     def core_args(self) -> tuple:
         """The index arguments of :func:`mapping.core.predict_batch` / ``gather_batch``, in order."""
         p, s = self.point_index, self.segment_index
-        return (self.hit_xy, _geom(p), p.cell_start, self.seg, _geom(s), s.cell_start, s.items)
+        return (
+            self.hit_xy,
+            _geom(p),
+            p.cell_start,
+            self.seg,
+            self.seg_entries,
+            _geom(s),
+            s.cell_start,
+            s.items,
+        )
 
     def gather(
         self, queries_xy_m: FloatArray, k_occ: int, k_free: int
