@@ -138,6 +138,7 @@ def evaluate_holdout(
                     "grid_s": t3 - t2,
                     "hyperparameters": params.kernel.as_dict(),
                     "pls": {"alpha": params.alpha, "beta": params.beta},
+                    "params": params.to_dict(),  # save as JSON and set mapping.params_file to reuse
                 }
             )
             bar.advance()
@@ -186,6 +187,7 @@ def evaluate_ground_truth(
                 "grid_s": t3 - t2,
                 "hyperparameters": params.kernel.as_dict(),
                 "pls": {"alpha": params.alpha, "beta": params.beta},
+                "params": params.to_dict(),
             }
         ],
     }
