@@ -6,14 +6,20 @@ free beam segments, each giving its point closest to ``x*`` (-1, eqs. 13-14); th
 of ``K + sigma_n^2 I`` (jitter added and the factorisation retried if it fails), and the PLS link
 ``p = Phi((alpha mu + beta) / sqrt(1 + alpha^2 (sigma^2 + sigma_n^2)))`` (SPEC section 5, R&W eq. 6.42).
 
+Two paths share the same steps. The fast path, :func:`predict_batch`, solves LANES = 16 queries together
+(lane index innermost, so that LLVM vectorises the kernel blocks, the Cholesky and the solves:
+``_kernel_lanes``, ``_cholesky_lanes``, ``_forward_lanes``); the scalar path (``_kernel_blocks``,
+``_solve_local``) redoes, alone and with jitter, a query whose factorisation failed.
+
 Seams for GPPOL (issue 5): the per-query work is split into
 neighbour search (:func:`mapping.index.knn_points`, :func:`mapping.index.knn_segments`: ids, and the
-position ``t`` of each free point along its beam),
-``_training_inputs`` (training point means, centred on the query; GPPOL adds their 2x2 covariances here),
-``_kernel_blocks`` (``K`` between training points, ``k*`` between training points and the query, ``k**``;
-GPPOL swaps these for the kernels integrated over the training input distributions) and
-``_solve_local`` (Cholesky, mean, variance). A GPPOL driver reuses the neighbour search and
-``_solve_local``, and replaces the two middle steps.
+position ``t`` of each free point along its beam, from which GPPOL gets the range of the free point),
+``_training_inputs`` (training point means, centred on the query; GPPOL adds their 2x2 covariances, from the
+unscented transform, beside them), ``_kernel_lanes`` / ``_kernel_blocks`` (``K`` between training points,
+``k*`` between training points and the query, ``k**``; GPPOL swaps these for the kernels integrated over the
+training input distributions, eq. 19 / eq. 23; the test point stays deterministic) and
+``_cholesky_lanes`` + ``_forward_lanes`` / ``_solve_local`` (unchanged for GPPOL). A GPPOL driver copies
+:func:`predict_batch` and replaces the two middle steps; the PLS link is the same.
 
 Compiled code is cached on disk (``cache=True``). Numba's cache does not notice edits to compiled functions
 of OTHER modules that a cached function calls (e.g. :mod:`mapping.index` from :func:`predict_batch`): after
