@@ -407,9 +407,20 @@ def knn_segments(
     gx = (qx - ox) / cell
     gy = (qy - oy) / cell
     if count == k:  # warm start: scan the square of cells within the current k-th distance
+        # the query's own cell first: in dense areas it holds the nearest beams and tightens the bound
+        qcx = math.floor(gx)
+        qcy = math.floor(gy)
+        inside = 0 <= qcx < nx and 0 <= qcy < ny
+        if inside:
+            count = _segment_cell(
+                qx, qy, seg, ecopy, ox, oy, cell, ny, cell_start, items, k, best_d2, best_id, best_t,
+                buf, qcx, qcy, count, True,
+            )  # fmt: skip
         lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, nx, ny)
         for ix in range(lo_x, hi_x + 1):
             for iy in range(lo_y, hi_y + 1):
+                if inside and ix == qcx and iy == qcy:
+                    continue
                 if _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]:
                     count = _segment_cell(
                         qx, qy, seg, ecopy, ox, oy, cell, ny, cell_start, items, k, best_d2, best_id, best_t,
