@@ -2,7 +2,9 @@
 
 Ground-truth protocol when ``INPUT.gt.npz`` lies beside the input (simulated worlds: every cell of the
 raster scored), the hold-out protocol otherwise (blocks of scans held out, test points along their beams).
-Maps are built from the input's reference poses. GPPOL lands with issue 5: its AUC is ``None`` until then.
+Maps are built from the input's reference poses; a recording without them is mapped on the optimised
+trajectory of the SLAM stage, and the output says so (``poses``). GPPOL lands with issue 5: its AUC is
+``None`` until then.
 """
 
 from __future__ import annotations
@@ -86,16 +88,29 @@ def build_grid(beams: Beams, cfg: MappingConfig, bounds=None) -> OccupancyGrid:
 
 
 def reference_laser_poses(rec: Recording, input_path: Path) -> np.ndarray:
+    """(N, 3) laser poses from the recording's reference poses (PipelineError when it has none)."""
     if rec.scans is None or len(rec.scans) == 0:
         raise DatasetError(f"{input_path}: no laser scans to map")
     if rec.reference is None:
-        raise PipelineError(
-            f"{input_path}: no reference poses (ground truth or corrected log); mapping on a SLAM "
-            "trajectory is not available yet (SLAM stage, issue 6)"
-        )
+        raise PipelineError(f"{input_path}: no reference poses (ground truth or corrected log)")
     if len(rec.reference) != len(rec.scans):
         raise DatasetError(f"{input_path}: {len(rec.reference)} reference poses for {len(rec.scans)} scans")
     return compose_laser_poses(rec.reference.poses_xytheta, rec.laser_in_base_xytheta)
+
+
+def mapping_laser_poses(
+    rec: Recording, input_path: Path, slam_config: Any = None, progress: Progress | None = None
+) -> tuple[np.ndarray, str]:
+    """(N, 3) laser poses to map with, and where they come from: the reference poses when the recording has
+    them (``"reference"``), else the optimised trajectory of the SLAM stage (``"slam"``, SPEC section 6)."""
+    if rec.scans is None or len(rec.scans) == 0:
+        raise DatasetError(f"{input_path}: no laser scans to map")
+    if rec.reference is not None:
+        return reference_laser_poses(rec, input_path), "reference"
+    from slam.system import run_slam
+
+    result = run_slam(rec.scans, rec.odometry, rec.laser_in_base_xytheta, slam_config, progress)
+    return compose_laser_poses(result.poses_after_xytheta, rec.laser_in_base_xytheta), "slam"
 
 
 def evaluate_holdout(
@@ -208,7 +223,7 @@ def evaluate_map(
     cfg = config.mapping
     input_path = Path(input_path)
     rec = open_dataset(input_path, config.input)
-    laser_poses = reference_laser_poses(rec, input_path)
+    laser_poses, pose_source = mapping_laser_poses(rec, input_path, config.slam, progress)
     gt_path = Path(str(input_path) + ".gt.npz")
     if gt_path.is_file():
         protocol = "ground_truth"
@@ -224,7 +239,11 @@ def evaluate_map(
         "gpfol": float(np.mean([r["auc_gpfol"] for r in rows])),
         "grid": float(np.mean([r["auc_grid"] for r in rows])),
     }
-    table = {"protocol": protocol, "seeds": ",".join(map(str, used_seeds)) or "-"}
+    table = {
+        "protocol": protocol,
+        "seeds": ",".join(map(str, used_seeds)) or "-",
+        "poses": "the input's reference poses" if pose_source == "reference" else "SLAM (no reference)",
+    }
     table.update({f"AUC {k}": ("not available (issue 5)" if v is None else v) for k, v in auc.items()})
     for r in rows:
         tag = "" if r["seed"] is None else f" seed {r['seed']}"
@@ -234,7 +253,7 @@ def evaluate_map(
         "seeds": used_seeds,
         "auc": auc,
         "input": str(input_path),
-        "poses": "reference",
+        "poses": pose_source,
         "notes": "gppol is None until GPPOL lands (issue 5)",
         "per_seed": rows,
         "table": table,

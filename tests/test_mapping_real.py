@@ -86,7 +86,23 @@ def test_cli_evaluate_map_json_on_intel(tmp_path) -> None:
     assert out["auc"]["gpfol"] > out["auc"]["grid"]
 
 
-def test_evaluate_map_without_reference_poses_is_one_clear_error(tmp_path) -> None:
+def test_without_reference_poses_the_map_uses_the_slam_trajectory() -> None:
+    """SPEC section 6: a recording without reference poses is mapped on the SLAM stage's trajectory."""
+    import dataclasses
+    from pathlib import Path
+
+    from datasets.simulation import make_world
+    from pipeline.evaluate_map import mapping_laser_poses
+
+    rec = make_world("loop", 0).recording
+    truth, source = mapping_laser_poses(rec, Path("loop"))
+    assert source == "reference"
+    poses, source = mapping_laser_poses(dataclasses.replace(rec, reference=None), Path("loop"))
+    assert source == "slam" and poses.shape == truth.shape
+    assert np.abs(poses[:, :2] - truth[:, :2]).max() < 0.5
+
+
+def test_evaluate_map_of_a_missing_file_is_one_clear_error(tmp_path) -> None:
     from datasets.errors import GpomError
     from pipeline.evaluate_map import evaluate_map
 
