@@ -17,6 +17,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
@@ -82,6 +83,44 @@ class Beams:
             beam_index=self.beam_index[m],
             source_index=self.source_index[m],
         )
+
+
+def select_scans_by_motion(
+    poses_xytheta: FloatArray, min_travel_m: float, min_rotation_rad: float
+) -> NDArray[np.int64]:
+    """Indices of the scans to map: the first one, then each scan whose pose (N, 3) moved at least
+    ``min_travel_m`` or turned at least ``min_rotation_rad`` since the last selected one (both 0: all scans).
+
+    A robot standing still logs the same scan again and again; mapping them all costs time and adds no
+    information (and would over-weight those places).
+    """
+    p = np.asarray(poses_xytheta, dtype=np.float64).reshape(-1, 3)
+    n = p.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    if min_travel_m <= 0 and min_rotation_rad <= 0:
+        return np.arange(n, dtype=np.int64)
+    return _select_by_motion(p, float(min_travel_m), float(min_rotation_rad))
+
+
+@nb.njit(cache=True)
+def _select_by_motion(p, min_travel, min_rot):  # pragma: no cover - compiled
+    n = p.shape[0]
+    out = np.empty(n, dtype=np.int64)
+    out[0] = 0
+    m = 1
+    last = 0
+    for i in range(1, n):
+        dx = p[i, 0] - p[last, 0]
+        dy = p[i, 1] - p[last, 1]
+        dth = abs((p[i, 2] - p[last, 2] + np.pi) % (2.0 * np.pi) - np.pi)
+        if (min_travel > 0 and dx * dx + dy * dy >= min_travel * min_travel) or (
+            min_rot > 0 and dth >= min_rot
+        ):
+            out[m] = i
+            m += 1
+            last = i
+    return out[:m]
 
 
 def compose_laser_poses(poses_xytheta: FloatArray, laser_in_base_xytheta: FloatArray) -> FloatArray:

@@ -24,7 +24,8 @@ from mapping.core import gather_batch
 from mapping.gpmap import GPOccupancyMap, grid_centres
 from mapping.grid import OccupancyGrid
 from pipeline.config import load_config
-from pipeline.evaluate_map import fit_params, make_beams, reference_laser_poses
+from pipeline.evaluate_map import make_beams, reference_laser_poses
+from pipeline.mapping_stage import fit_params
 from pipeline.progress import Progress
 
 DATA_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data"

@@ -15,15 +15,13 @@ from typing import Any
 
 import numpy as np
 
-from datasets.errors import ConfigError, DatasetError
+from datasets.errors import DatasetError
 from datasets.types import Recording
-from mapping.beams import Beams, beams_from_scan_sequence, compose_laser_poses
+from mapping.beams import Beams, compose_laser_poses
 from mapping.config import MappingConfig
 from mapping.evaluation import holdout_split, holdout_test_points, is_carmen_180, raster_cell_centres
-from mapping.gpmap import GPOccupancyMap
-from mapping.grid import OccupancyGrid
 from mapping.metrics import roc_auc
-from mapping.train import GPParams, ParamsFileError, train_gp
+from pipeline import mapping_stage as ms
 from pipeline.config import load_config
 from pipeline.errors import PipelineError
 from pipeline.progress import Progress
@@ -31,60 +29,9 @@ from pipeline.progress import Progress
 DEFAULT_SEEDS = [0, 1, 2, 3, 4]
 
 
-def load_params(cfg: MappingConfig) -> GPParams | None:
-    """The stored GP parameters of ``cfg.params_file`` (None when not set); ConfigError if unreadable."""
-    if cfg.params_file is None:
-        return None
-    try:
-        return GPParams.load(cfg.params_file)
-    except ParamsFileError as exc:
-        raise ConfigError(f"{cfg.params_file}: {exc}") from None
-
-
-def fit_params(beams: Beams, cfg: MappingConfig, seed_offset: int = 0) -> GPParams:
-    """Stored parameters if configured, else hyperparameters and PLS link learnt from the first scans."""
-    stored = load_params(cfg)
-    if stored is not None:
-        return stored
-    try:
-        return train_gp(
-            beams,
-            kernel_name=cfg.kernel,
-            kernel_bounds=cfg.kernel_bounds or None,
-            noise_var=cfg.noise_var,
-            k_occ=cfg.k_occupied,
-            k_free=cfg.k_free,
-            n_scans=cfg.train_scans,
-            n_problems=cfg.train_problems,
-            maxfun=cfg.train_anneal_evaluations,
-            maxiter=cfg.train_lbfgs_iterations,
-            seed=cfg.train_seed + seed_offset,
-            index_cell_m=cfg.index_cell_m,
-            learn_noise=cfg.learn_noise,
-        )
-    except ValueError as exc:
-        raise PipelineError(f"cannot train the GP: {exc}") from None
-
-
 def make_beams(rec: Recording, laser_poses: np.ndarray, indices: np.ndarray, cfg: MappingConfig) -> Beams:
     """World-frame beams of the scans ``indices`` of ``rec`` at ``laser_poses`` (N, 3)."""
-    return beams_from_scan_sequence(
-        rec.scans.subset(indices),
-        laser_poses[indices],
-        None,
-        no_return_free_length_m=cfg.no_return_free_length_m,
-        free_margin_m=cfg.free_margin_m,
-        scan_indices=indices,
-    )
-
-
-def build_gp_map(beams: Beams, params: GPParams, cfg: MappingConfig) -> GPOccupancyMap:
-    return GPOccupancyMap(beams, params, cfg.k_occupied, cfg.k_free, cfg.jitter, cfg.index_cell_m)
-
-
-def build_grid(beams: Beams, cfg: MappingConfig, bounds=None) -> OccupancyGrid:
-    g = cfg.grid
-    return OccupancyGrid.build(beams, g.resolution_m, bounds, g.p_occupied, g.p_free, g.p_clamp)
+    return ms.make_beams(rec.scans, laser_poses, np.zeros(3), cfg, indices)
 
 
 def reference_laser_poses(rec: Recording, input_path: Path) -> np.ndarray:
@@ -107,9 +54,9 @@ def mapping_laser_poses(
         raise DatasetError(f"{input_path}: no laser scans to map")
     if rec.reference is not None:
         return reference_laser_poses(rec, input_path), "reference"
-    from slam.system import run_slam
+    from slam.system import run_slam_recording
 
-    result = run_slam(rec.scans, rec.odometry, rec.laser_in_base_xytheta, slam_config, progress)
+    result = run_slam_recording(rec, slam_config, progress)
     return compose_laser_poses(result.poses_after_xytheta, rec.laser_in_base_xytheta), "slam"
 
 
@@ -132,12 +79,12 @@ def evaluate_holdout(
             )
             beams = make_beams(rec, laser_poses, train, cfg)
             t0 = time.perf_counter()
-            params = fit_params(beams, cfg, seed_offset=seed)
+            params = ms.fit_params(beams, cfg, seed_offset=seed)
             t1 = time.perf_counter()
-            gp = build_gp_map(beams, params, cfg)
+            gp = ms.build_gp_map(beams, params, cfg, mapper="gpfol")
             p_gp = gp.query(pts).probability
             t2 = time.perf_counter()
-            grid = build_grid(beams, cfg)
+            grid = ms.build_grid(beams, cfg)
             p_grid = grid.query(pts)
             t3 = time.perf_counter()
             per_seed.append(
@@ -164,27 +111,26 @@ def evaluate_ground_truth(
     rec: Recording, laser_poses: np.ndarray, gt_path: Path, cfg: MappingConfig, progress: Progress
 ) -> dict[str, Any]:
     """Score every cell of the ground-truth raster ``gt_path`` (SPEC section 6, simulated worlds)."""
-    try:
-        with np.load(gt_path) as gt:
-            occ = np.asarray(gt["occupancy"]).astype(bool)
-            res = float(gt["resolution_m"])
-            origin = np.asarray(gt["origin_xy_m"], dtype=np.float64)
-    except (OSError, KeyError, ValueError) as exc:
-        raise DatasetError(f"{gt_path}: not a ground-truth raster ({exc})") from None
+    from datasets.simulation import load_ground_truth
+
+    gt = load_ground_truth(gt_path)
+    occ = np.asarray(gt.occupancy).astype(bool)
+    res = float(gt.resolution_m)
+    origin = np.asarray(gt.origin_xy_m, dtype=np.float64)
     with progress.stage("evaluate map", total=3) as bar:
         beams = make_beams(rec, laser_poses, np.arange(len(rec.scans)), cfg)
         t0 = time.perf_counter()
-        params = fit_params(beams, cfg)
+        params = ms.fit_params(beams, cfg)
         bar.advance()
         t1 = time.perf_counter()
-        gp = build_gp_map(beams, params, cfg)
+        gp = ms.build_gp_map(beams, params, cfg, mapper="gpfol")
         centres = raster_cell_centres(occ.shape, origin, res)
         p_gp = gp.query(centres, sort=False).probability
         bar.advance()
         t2 = time.perf_counter()
         h, w = occ.shape
         bounds = (origin[0], origin[1], origin[0] + w * res, origin[1] + h * res)
-        grid = build_grid(beams, cfg, bounds)
+        grid = ms.build_grid(beams, cfg, bounds)
         p_grid = grid.query(centres)
         bar.advance()
         t3 = time.perf_counter()

@@ -20,7 +20,8 @@ from mapping.grid import OccupancyGrid
 from mapping.metrics import roc_auc, roc_curve
 from pipeline.bench_mapping import DATA_DIR, INTEL, robust_bounds
 from pipeline.config import load_config
-from pipeline.evaluate_map import build_gp_map, build_grid, fit_params, make_beams, reference_laser_poses
+from pipeline.evaluate_map import make_beams, reference_laser_poses
+from pipeline.mapping_stage import build_gp_map, build_grid, fit_params
 
 REPO = Path(__file__).resolve().parent.parent
 OUT_DIR = REPO / "docs" / "figures" / "mapping"
@@ -37,7 +38,7 @@ def intel_figures(out: Path) -> dict[str, Any]:
     n = len(rec.scans)
     beams = make_beams(rec, poses, np.arange(n), cfg)
     params = fit_params(beams, cfg)
-    gp = build_gp_map(beams, params, cfg)
+    gp = build_gp_map(beams, params, cfg, mapper="gpfol")
     bounds = robust_bounds(beams.hit_xy_m)
     layers = gp.render(bounds, 0.1)
     plot_layer(layers, "probability", out / "intel_probability.png", "Intel lab, GPFOL p(occupied), 0.1 m")
@@ -49,7 +50,7 @@ def intel_figures(out: Path) -> dict[str, Any]:
     carmen = is_carmen_180(rec.scans.angles_rad[0])
     pts, labels = holdout_test_points(rec.scans.ranges_m, rec.scans.angles_rad, poses, held, 0, carmen)
     tb = make_beams(rec, poses, train, cfg)
-    p_gp = build_gp_map(tb, fit_params(tb, cfg), cfg).query(pts).probability
+    p_gp = build_gp_map(tb, fit_params(tb, cfg), cfg, mapper="gpfol").query(pts).probability
     p_grid = build_grid(tb, cfg).query(pts)
     curves = {
         "GPFOL": (*roc_curve(p_gp, labels)[:2], roc_auc(p_gp, labels)),
@@ -69,7 +70,7 @@ def street_figures(out: Path, seed: int = 0) -> dict[str, Any]:
     poses = reference_laser_poses(rec, Path("street"))
     beams = make_beams(rec, poses, np.arange(len(rec.scans)), cfg)
     params = fit_params(beams, cfg)
-    gp = build_gp_map(beams, params, cfg)
+    gp = build_gp_map(beams, params, cfg, mapper="gpfol")
     occ = np.asarray(gt.occupancy).astype(bool)
     h, w = occ.shape
     res = float(gt.resolution_m)

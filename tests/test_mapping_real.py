@@ -13,7 +13,8 @@ from datasets.registry import open_dataset
 from mapping.config import MappingConfig
 from mapping.gpmap import GPOccupancyMap
 from pipeline.config import load_config
-from pipeline.evaluate_map import evaluate_holdout, fit_params, make_beams, reference_laser_poses
+from pipeline.evaluate_map import evaluate_holdout, make_beams, reference_laser_poses
+from pipeline.mapping_stage import fit_params
 from pipeline.progress import Progress
 from tests.conftest import REPO, data_file
 
