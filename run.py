@@ -62,6 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=float, help="map cell size in metres")
     p.add_argument("--bounds", help="XMIN,YMIN,XMAX,YMAX in metres (default: from the data)")
     p.add_argument("--out", type=Path, help="output folder (default: RUN_DIR/remap)")
+    p.add_argument(
+        "--recompute", action="store_true", help="render even when nothing changed (default: copy the map)"
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     _add_json(p)
 

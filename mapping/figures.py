@@ -12,6 +12,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+import numpy as np
 from matplotlib.colors import ListedColormap
 from numpy.typing import NDArray
 
@@ -154,4 +155,42 @@ def plot_street_panels(
     for ax in a:
         ax.tick_params(labelsize=7)
     fig.tight_layout()
+    return _finish(fig, path, dpi)
+
+
+def plot_before_after_maps(
+    before: MapLayers,
+    after: MapLayers,
+    path: Path,
+    path_before_xy_m: NDArray | None = None,
+    path_after_xy_m: NDArray | None = None,
+    closures_xy_m: NDArray | None = None,
+    titles: tuple[str, str] = ("before loop closure", "after loop closure"),
+    width_in: float = 12.0,
+    dpi: int = 100,
+) -> Path:
+    """Two probability maps side by side with one colour bar, each with its trajectory (N, 2); loop
+    closures ``closures_xy_m`` (C, 2, 2) (query and target positions on the ``after`` trajectory) are drawn
+    on the right panel."""
+    h, w = after.shape
+    fig, axes = plt.subplots(1, 2, figsize=(width_in, max(3.0, width_in / 2 * h / w * 0.95 + 0.6)))
+    im = None
+    for ax, layers, traj, title in zip(
+        axes, (before, after), (path_before_xy_m, path_after_xy_m), titles, strict=True
+    ):
+        im = ax.imshow(layers.probability, origin="lower", extent=_extent(layers), **_PROB_STYLE)
+        if traj is not None and len(traj):
+            ax.plot(traj[:, 0], traj[:, 1], "-", color="tab:red", lw=0.7, alpha=0.85, label="trajectory")
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.set_title(title, fontsize=10)
+    if closures_xy_m is not None and len(closures_xy_m):
+        for k, seg in enumerate(np.asarray(closures_xy_m)):
+            axes[1].plot(
+                seg[:, 0], seg[:, 1], "-", color="tab:green", lw=0.6, label="loop closure" if k == 0 else None
+            )
+    for ax in axes:
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(loc="lower right", fontsize=7)
+    fig.colorbar(im, ax=axes, label="p(occupied)", fraction=0.025, pad=0.02)
     return _finish(fig, path, dpi)
