@@ -24,7 +24,7 @@ from mapping.core import gather_batch
 from mapping.gpmap import GPOccupancyMap, grid_centres
 from mapping.grid import OccupancyGrid
 from pipeline.config import load_config
-from pipeline.evaluate_map import make_beams, reference_laser_poses
+from pipeline.evaluate_map import make_beams, reference_base_poses
 from pipeline.mapping_stage import fit_params
 from pipeline.progress import Progress
 
@@ -67,8 +67,8 @@ def bench_mapping(progress: Progress | None = None, data_dir: Path | None = None
     cfg = load_config().mapping
     with progress.stage("bench mapping", total=5) as bar:
         rec = open_dataset(path)
-        laser = reference_laser_poses(rec, path)
-        beams = make_beams(rec, laser, np.arange(len(rec.scans)), cfg)
+        base = reference_base_poses(rec, path)
+        beams = make_beams(rec, base, np.arange(len(rec.scans)), cfg)
         with _Timer() as t_train:
             params = fit_params(beams, cfg)
         bar.advance()

@@ -20,7 +20,7 @@ from mapping.grid import OccupancyGrid
 from mapping.metrics import roc_auc, roc_curve
 from pipeline.bench_mapping import DATA_DIR, INTEL, robust_bounds
 from pipeline.config import load_config
-from pipeline.evaluate_map import make_beams, reference_laser_poses
+from pipeline.evaluate_map import make_beams, reference_base_poses, reference_laser_poses
 from pipeline.mapping_stage import build_gp_map, build_grid, fit_params
 
 REPO = Path(__file__).resolve().parent.parent
@@ -34,7 +34,8 @@ def intel_figures(out: Path) -> dict[str, Any]:
     cfg = load_config().mapping
     path = DATA_DIR / INTEL
     rec = open_dataset(path)
-    poses = reference_laser_poses(rec, path)
+    poses = reference_base_poses(rec, path)
+    laser = reference_laser_poses(rec, path)
     n = len(rec.scans)
     beams = make_beams(rec, poses, np.arange(n), cfg)
     params = fit_params(beams, cfg)
@@ -48,7 +49,7 @@ def intel_figures(out: Path) -> dict[str, Any]:
     held = holdout_split(n, 0)
     train = np.setdiff1d(np.arange(n), held)
     carmen = is_carmen_180(rec.scans.angles_rad[0])
-    pts, labels = holdout_test_points(rec.scans.ranges_m, rec.scans.angles_rad, poses, held, 0, carmen)
+    pts, labels = holdout_test_points(rec.scans.ranges_m, rec.scans.angles_rad, laser, held, 0, carmen)
     tb = make_beams(rec, poses, train, cfg)
     p_gp = build_gp_map(tb, fit_params(tb, cfg), cfg, mapper="gpfol").query(pts).probability
     p_grid = build_grid(tb, cfg).query(pts)
@@ -67,7 +68,7 @@ def street_figures(out: Path, seed: int = 0) -> dict[str, Any]:
     run = make_world("street", seed)
     rec = run.recording
     gt = run.ground_truth
-    poses = reference_laser_poses(rec, Path("street"))
+    poses = reference_base_poses(rec, Path("street"))
     beams = make_beams(rec, poses, np.arange(len(rec.scans)), cfg)
     params = fit_params(beams, cfg)
     gp = build_gp_map(beams, params, cfg, mapper="gpfol")
