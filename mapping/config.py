@@ -17,6 +17,13 @@ class GridBaselineConfig(BaseModel):
     p_occupied: float = Field(0.7, gt=0.5, lt=1, description="inverse sensor model: p(occ) at an endpoint")
     p_free: float = Field(0.4, gt=0, lt=0.5, description="inverse sensor model: p(occ) along a beam")
     p_clamp: float = Field(0.97, gt=0.5, lt=1, description="log-odds clamped to logit(+-p_clamp)")
+    beam_width_deg: float = Field(
+        0.0,
+        ge=0,
+        lt=180,
+        description="0: each beam is a ray; > 0: a cone of this full width (the paper widens the beams of "
+        "its sparse street data by bearing noise, section 4.1.1)",
+    )
 
 
 class MappingConfig(BaseModel):
