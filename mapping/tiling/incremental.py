@@ -22,6 +22,7 @@ ones.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,11 +31,12 @@ from numpy.typing import NDArray
 from mapping.beams import Beams
 from mapping.exports import MapLayers
 from mapping.tiling.grid import TileGrid
-from mapping.tiling.render import MapFactory, RenderJob, TileRenderer, render_serial
+from mapping.tiling.render import MapFactory, RenderJob, TileRenderer, TileResult, render_serial
 from mapping.tiling.store import ArraySink
 from mapping.tiling.support import SupportIndex, beam_displacement_m, concat_beams, merge_beams
 
 FloatArray = NDArray[np.float64]
+OnTile = Callable[[TileResult], None] | None
 
 
 def default_index_cell_m(grid: TileGrid) -> float:
@@ -108,10 +110,10 @@ class IncrementalMap:
         self.index = SupportIndex.build(beams, self.index_cell_m)
 
     # -- full rendering -----------------------------------------------------------------------------------
-    def render_all(self) -> UpdateReport:
-        """Render every tile."""
+    def render_all(self, on_tile: OnTile = None) -> UpdateReport:
+        """Render every tile (``on_tile`` is called with each result, e.g. to report progress)."""
         t0 = time.perf_counter()
-        n = self._render(np.arange(len(self.grid)))
+        n = self._render(np.arange(len(self.grid)), on_tile)
         return UpdateReport(len(self.grid), n, len(self.beams), time.perf_counter() - t0)
 
     def adopt_rendered(self) -> None:
@@ -122,7 +124,7 @@ class IncrementalMap:
             radii = self.index.tile_radii(self.rects[t], self.k_occ, self.k_free, s)
             self.rho_occ[t], self.rho_free[t] = radii
 
-    def _render(self, tiles: NDArray[np.int64]) -> int:
+    def _render(self, tiles: NDArray[np.int64], on_tile: OnTile = None) -> int:
         job = RenderJob(self.index, self.grid, self.factory, self.cov_xytheta, self.k_occ, self.k_free)
         n = 0
         for r in self.renderer(job, [int(t) for t in tiles]):
@@ -132,6 +134,8 @@ class IncrementalMap:
             self.support_beams[r.tile] = r.support_beams
             self.tile_seconds[r.tile] = r.seconds
             n += 1
+            if on_tile is not None:
+                on_tile(r)
         if n != len(tiles):
             raise RuntimeError(f"the renderer returned {n} of {len(tiles)} tiles")
         return n
@@ -148,7 +152,9 @@ class IncrementalMap:
         return np.flatnonzero(idx.any_within(self.rects, self.rho_occ, self.rho_free))
 
     # -- updates ------------------------------------------------------------------------------------------
-    def add_scans(self, new_beams: Beams, cov_xytheta: FloatArray | None = None) -> UpdateReport:
+    def add_scans(
+        self, new_beams: Beams, cov_xytheta: FloatArray | None = None, on_tile: OnTile = None
+    ) -> UpdateReport:
         """Add the beams of new scans (appended after the current ones) and re-render the tiles they reach.
         ``cov_xytheta``: the per-scan covariances covering the new scans too (required when the map has
         covariances)."""
@@ -160,7 +166,7 @@ class IncrementalMap:
             self.cov_xytheta = np.asarray(cov_xytheta, dtype=np.float64)
         tiles = self.affected_tiles(new_beams)
         self._set_beams(concat_beams(self.beams, new_beams))
-        self._render(tiles)
+        self._render(tiles, on_tile)
         return UpdateReport(len(self.grid), len(tiles), len(new_beams), time.perf_counter() - t0)
 
     def update_poses(
@@ -169,6 +175,7 @@ class IncrementalMap:
         cov_xytheta: FloatArray | None = None,
         tolerance_m: float = 0.0,
         cov_tolerance: float = 0.0,
+        on_tile: OnTile = None,
     ) -> UpdateReport:
         """The same beams at other poses (and other per-scan covariances): re-render the tiles that a changed
         beam reaches, before or after the change (see the module docstring for the tolerances)."""
@@ -188,7 +195,7 @@ class IncrementalMap:
         tiles = self.affected_tiles(concat_beams(old_changed, new_changed))
         self.cov_xytheta = new_cov
         self._set_beams(merge_beams(self.beams, beams, changed))
-        self._render(tiles)
+        self._render(tiles, on_tile)
         return UpdateReport(len(self.grid), len(tiles), int(changed.sum()), time.perf_counter() - t0)
 
     def layers(self) -> MapLayers:
