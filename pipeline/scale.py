@@ -71,8 +71,11 @@ def _render_task(tile: int, job: RenderJob, numba_threads: int | None) -> TileRe
 class DaskEngine:
     """Renders tiles on a Dask cluster: a local one (``"local"``) or a running scheduler by address."""
 
-    def __init__(self, scheduler: str, workers: int = 2, threads_per_worker: int = 1) -> None:
+    def __init__(
+        self, scheduler: str, workers: int = 2, threads_per_worker: int = 1, connect_timeout_s: float = 20.0
+    ) -> None:
         self.scheduler = scheduler
+        self.connect_timeout_s = connect_timeout_s
         self.workers = workers
         self.threads_per_worker = threads_per_worker
         self.client = None
@@ -94,7 +97,7 @@ class DaskEngine:
                 cores = os.cpu_count() or 1
                 self.numba_threads = max(1, cores // (self.workers * self.threads_per_worker))
             else:
-                self.client = Client(self.scheduler, timeout="20s")
+                self.client = Client(self.scheduler, timeout=f"{self.connect_timeout_s}s")
         except (OSError, TimeoutError) as exc:
             self.__exit__()
             raise PipelineError(f"cannot reach the Dask scheduler {self.scheduler!r}: {exc}") from None
@@ -133,7 +136,7 @@ def tile_engine(cfg: ScaleConfig) -> Iterator[TileRenderer]:
     if cfg.scheduler is None:
         yield render_serial
         return
-    with DaskEngine(cfg.scheduler, cfg.workers, cfg.threads_per_worker) as engine:
+    with DaskEngine(cfg.scheduler, cfg.workers, cfg.threads_per_worker, cfg.connect_timeout_s) as engine:
         yield engine
 
 

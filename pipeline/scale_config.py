@@ -28,5 +28,8 @@ class ScaleConfig(BaseModel):
         None, pattern=SCHEDULER_PATTERN, description="where tiles are rendered: null in this process, "
         "'local' a local Dask cluster, or the address of a Dask scheduler (tcp://HOST:PORT)"
     )  # fmt: skip
+    connect_timeout_s: float = Field(
+        20.0, gt=0, le=3600, description="how long to wait for a remote Dask scheduler"
+    )
     workers: int = Field(2, ge=1, le=512, description="worker processes of a 'local' cluster")
     threads_per_worker: int = Field(1, ge=1, le=512, description="threads per worker of a 'local' cluster")

@@ -58,6 +58,10 @@ class TileGrid:
     def __len__(self) -> int:
         return self.n_rows * self.n_cols
 
+    def tiles(self) -> range:
+        """Every tile id."""
+        return range(len(self))
+
     @property
     def cells(self) -> int:
         return self.shape_hw[0] * self.shape_hw[1]
