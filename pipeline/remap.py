@@ -17,8 +17,9 @@ odometry trajectory, as ``run`` selects them).
 Only what changed is recomputed (:class:`mapping.tiling.IncrementalMap`): when the grid (bounds,
 resolution), the mapping settings and the tile size are the run's, the run's ``after`` map is taken as it is
 and only the tiles that a moved beam (or, for GPPOL, a beam whose scan covariance changed) can reach are
-rendered again; the result equals a full rendering bit for bit (with the default tolerances
-``scale.pose_tolerance_m`` and ``scale.covariance_tolerance`` of 0). ``summary.json["tiles"]`` reports the
+rendered again. The result is a full rendering, bit for bit, of beams each within ``scale.pose_tolerance_m``
+(default 1 um: text round trips of poses are not exact) of the new ones; with tolerances of 0 it equals a full
+rendering of the new beams bit for bit. ``summary.json["tiles"]`` reports the
 fraction of tiles recomputed. Otherwise (``--recompute``, other bounds, resolution or settings) every tile
 is rendered.
 """

@@ -17,8 +17,9 @@ class ScaleConfig(BaseModel):
         "the same map; smaller tiles make incremental updates finer, larger ones cost less overhead)"
     )  # fmt: skip
     pose_tolerance_m: float = Field(
-        0.0, ge=0, le=10, description="remap: beams that moved less than this keep their old position "
-        "(0: the result equals a full recomputation bit for bit)"
+        1e-6, ge=0, le=10, description="remap: beams that moved less than this keep their old position. "
+        "1 um ignores the float noise of text round trips (TUM's yaw -> quaternion -> yaw changes the last "
+        "bits); 0 makes the result equal a full recomputation bit for bit"
     )  # fmt: skip
     covariance_tolerance: float = Field(
         0.0, ge=0, le=100, description="remap (gppol): scan covariances that changed less than this in every "
