@@ -363,3 +363,20 @@ def test_array_sink_adopts_a_rendering(corridor) -> None:
     np.testing.assert_array_equal(adopted.rho_free, m.rho_free)
     with pytest.raises(ValueError, match="do not fit"):
         ArraySink(TileGrid.from_bounds(bounds, 0.25, 16), m.layers())
+
+
+# ---------------------------------------------------------------------------------------------------------
+# the benchmark's machinery, on a small city
+
+
+def test_large_map_benchmark_machinery_on_a_small_city() -> None:
+    from pipeline.bench_scale import bench_large_map, city_edges, city_path, city_ranges
+
+    edges, poses = city_edges(100.0), city_path(100.0)
+    assert len(edges) >= 4 * 4 and np.all((poses[:, :2] >= 0) & (poses[:, :2] <= 100))
+    ranges, angles = city_ranges(poses[:5], edges)
+    assert ranges.shape == (5, angles.size) and np.all(ranges > 1.0)  # the path runs along the streets
+    result = bench_large_map(100.0, 0.5, 32)  # in a fresh process, as in ``bench``
+    assert result["cells"] == 200 * 200 and result["tiles"] == 49 and result["all_tiles_written"]
+    assert 0 < result["peak_rss_mib"] < 2048 and result["tiles_per_s"] > 0
+    assert result["probability_sample_fractions"]["free (<0.35)"] > 0.05
