@@ -198,8 +198,9 @@ def _tile_radius(
 
     The samples share one candidate set: every item within ``reach`` of the rectangle, sorted by that
     distance, which is a lower bound of its distance to any sample (samples lie in the rectangle). A sample's
-    search stops at the first candidate whose lower bound reaches its current k-th distance; its r_k is exact
-    when that distance is within ``reach``. Otherwise ``reach`` doubles (starting from the given one)."""
+    search stops at the first candidate whose lower bound reaches its current k-th distance (its r_k is then
+    exact when within ``reach``), or as soon as k candidates lie within the maximum so far (its r_k cannot
+    raise it). Otherwise ``reach`` doubles (starting from the given one)."""
     sx = (xb - xa) / subdiv
     sy = (yb - ya) / subdiv
     reach = max(reach, 1e-3)
@@ -226,8 +227,8 @@ def _tile_radius(
                 count = 0
                 for c in range(n):
                     o = order[c]
-                    if count == k and out_d[o] >= best[k - 1]:
-                        break
+                    if count == k and (out_d[o] >= best[k - 1] or best[k - 1] <= worst):
+                        break  # r_k here is known, or cannot raise the maximum
                     e = out_id[o]
                     if is_seg:
                         d = _point_segment(
