@@ -39,10 +39,15 @@ class ArraySink:
         if layers is None:
             self.arrays = {name: np.full(grid.shape_hw, np.nan, np.float32) for name in LAYERS}
         else:
-            if layers.shape != grid.shape_hw or layers.resolution_m != grid.resolution_m:
+            fits = (
+                layers.shape == grid.shape_hw
+                and layers.resolution_m == grid.resolution_m
+                and tuple(layers.origin_xy_m) == tuple(grid.origin_xy_m)
+            )
+            if not fits:
                 raise ValueError(
-                    f"layers of shape {layers.shape} at {layers.resolution_m} m do not fit the tile grid "
-                    f"{grid.shape_hw} at {grid.resolution_m} m"
+                    f"layers of shape {layers.shape} at {layers.resolution_m} m from {layers.origin_xy_m} do "
+                    f"not fit the tile grid {grid.shape_hw} at {grid.resolution_m} m from {grid.origin_xy_m}"
                 )
             self.arrays = {name: np.array(getattr(layers, name), dtype=np.float32) for name in LAYERS}
 
