@@ -26,6 +26,7 @@ def intel_beams():
     return make_beams(rec, reference_laser_poses(rec, path), np.arange(len(rec.scans)), cfg), cfg
 
 
+@pytest.mark.slow
 def test_local_cluster_renders_the_intel_map_like_the_serial_path(intel_beams) -> None:
     beams, cfg = intel_beams
     bounds = beams.bounds_xy_m(1.0)
