@@ -108,9 +108,20 @@ def build_maps(
     maps: dict[str, IncrementalMap] = {}
     for name, (_, cov) in trajectories.items():
         with timer(f"map_{name}"):
-            maps[name] = tiled_map(beams[name], params, cfg, config.scale, bounds, cov, renderer)
-            with progress.stage(f"map {name}", total=len(maps[name].grid)) as bar:
-                maps[name].render_all(on_tile=lambda _r, bar=bar: bar.advance())
+            if renderer is render_serial:
+                # In one process the whole map at once is faster than tile by tile (one neighbour index
+                # instead of one per tile) and gives the same map (bit for bit here; to a float32 ulp on
+                # some CPUs: tests/layer_checks.py); the tiled map adopts it, ready for incremental updates.
+                with progress.stage(f"map {name}", total=1) as bar:
+                    whole = ms.build_gp_map(beams[name], params, cfg, cov).render(bounds, cfg.resolution_m)
+                    bar.advance()
+                maps[name] = tiled_map(
+                    beams[name], params, cfg, config.scale, bounds, cov, renderer, layers=whole
+                )
+            else:
+                maps[name] = tiled_map(beams[name], params, cfg, config.scale, bounds, cov, renderer)
+                with progress.stage(f"map {name}", total=len(maps[name].grid)) as bar:
+                    maps[name].render_all(on_tile=lambda _r, bar=bar: bar.advance())
             layers[name] = maps[name].layers()
     return layers, maps, params, bounds
 

@@ -24,6 +24,7 @@ from mapping.tiling import (
 )
 from mapping.tiling.support import _segment_rect
 from mapping.train import GPParams
+from tests.layer_checks import assert_same_map
 
 K_OCC, K_FREE = 15, 15
 # NN-kernel parameters learnt on intel.gfs.log by the default training (fixed here: tests do not train)
@@ -79,8 +80,7 @@ def corridor():
 
 
 def assert_same_layers(a, b) -> None:
-    for name in LAYER_NAMES:
-        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert_same_map(a, b)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -359,6 +359,8 @@ def test_array_sink_adopts_a_rendering(corridor) -> None:
     m.render_all()
     adopted = IncrementalMap(beams, grid, gp_factory, K_OCC, K_FREE, sink=ArraySink(grid, m.layers()))
     adopted.adopt_rendered()
+    assert np.isnan(adopted.rho_occ).all()  # computed lazily, by the first update or on demand
+    adopted.ensure_radii()
     np.testing.assert_array_equal(adopted.rho_occ, m.rho_occ)
     np.testing.assert_array_equal(adopted.rho_free, m.rho_free)
     with pytest.raises(ValueError, match="do not fit"):

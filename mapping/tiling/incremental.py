@@ -118,11 +118,21 @@ class IncrementalMap:
 
     def adopt_rendered(self) -> None:
         """Declare that the sink already holds a full rendering of :attr:`beams` (same grid, mapper and
-        parameters, e.g. a run's map read back) and compute the tiles' radii, so that updates can follow."""
+        parameters, e.g. a run's map read back). The tiles' radii, which updates need, are computed on the
+        first update (a map that is only written out never pays for them)."""
+        self._radii_pending = True
+
+    def ensure_radii(self) -> None:
+        """Compute the support radii of tiles adopted by :meth:`adopt_rendered` (done by the first update)."""
+        if not getattr(self, "_radii_pending", False):
+            return
         s = self.index.scratch()
         for t in range(len(self.grid)):
-            radii = self.index.tile_radii(self.rects[t], self.k_occ, self.k_free, s)
-            self.rho_occ[t], self.rho_free[t] = radii
+            if np.isnan(self.rho_occ[t]):
+                self.rho_occ[t], self.rho_free[t] = self.index.tile_radii(
+                    self.rects[t], self.k_occ, self.k_free, s
+                )
+        self._radii_pending = False
 
     def _render(self, tiles: NDArray[np.int64], on_tile: OnTile = None) -> int:
         job = RenderJob(self.index, self.grid, self.factory, self.cov_xytheta, self.k_occ, self.k_free)
@@ -141,6 +151,7 @@ class IncrementalMap:
         return n
 
     def _check_rendered(self) -> None:
+        self.ensure_radii()
         if np.isnan(self.rho_occ).any():
             raise RuntimeError("render_all (or adopt_rendered) must come before an incremental update")
 
