@@ -17,6 +17,13 @@ class GridBaselineConfig(BaseModel):
     p_occupied: float = Field(0.7, gt=0.5, lt=1, description="inverse sensor model: p(occ) at an endpoint")
     p_free: float = Field(0.4, gt=0, lt=0.5, description="inverse sensor model: p(occ) along a beam")
     p_clamp: float = Field(0.97, gt=0.5, lt=1, description="log-odds clamped to logit(+-p_clamp)")
+    beam_width_deg: float = Field(
+        0.0,
+        ge=0,
+        lt=180,
+        description="0: each beam is a ray; > 0: a cone of this full width (the paper widens the beams of "
+        "its sparse street data by bearing noise, section 4.1.1)",
+    )
 
 
 class SourceNoiseConfig(BaseModel):
@@ -76,13 +83,15 @@ class MappingConfig(BaseModel):
         None, description="learnt GP parameters (JSON) to reuse instead of training ('trained in advance')"
     )
     scan_min_travel_m: float = Field(
-        0.2,
+        0.5,
         ge=0,
         le=100,
         description="a run maps the scans taken after the laser moved this far (or turned "
         "scan_min_rotation_rad) since the last mapped scan; 0 and 0 map every scan",
     )
-    scan_min_rotation_rad: float = Field(0.1, ge=0, le=7, description="see scan_min_travel_m")
+    scan_min_rotation_rad: float = Field(
+        0.25, ge=0, le=7, description="see scan_min_travel_m (like GMapping's linear/angularUpdate)"
+    )
     train_scans: int = Field(50, ge=1, description="hyperparameters are learnt from the first N scans")
     train_problems: int = Field(64, ge=1, le=100_000, description="local neighbourhoods in the training set")
     train_anneal_evaluations: int = Field(

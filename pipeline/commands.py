@@ -106,6 +106,7 @@ def cmd_demo(args: argparse.Namespace, emit_json: EmitJson) -> int:
         seed=args.seed,
         overwrite=args.overwrite,
         progress=progress_for_terminal(args.quiet or args.json),
+        scheduler=args.scheduler,
     )
     return _report(result, args, emit_json, "demo")
 
@@ -122,6 +123,7 @@ def cmd_run(args: argparse.Namespace, emit_json: EmitJson) -> int:
         mapper=args.mapper,
         overwrite=args.overwrite,
         progress=progress_for_terminal(args.quiet or args.json),
+        scheduler=args.scheduler,
     )
     return _report(result, args, emit_json, f"run {args.input}")
 
@@ -138,6 +140,7 @@ def cmd_remap(args: argparse.Namespace, emit_json: EmitJson) -> int:
         overwrite=args.overwrite,
         recompute=args.recompute,
         progress=progress_for_terminal(args.quiet or args.json),
+        scheduler=args.scheduler,
     )
     return _report(result, args, emit_json, f"remap {args.run_dir}")
 

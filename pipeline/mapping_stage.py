@@ -163,9 +163,8 @@ def build_gp_map(
 
 
 def build_grid(beams: Beams, cfg: MappingConfig, bounds: Bounds | None = None) -> OccupancyGrid:
-    """The occupancy-grid baseline (Thrun et al. 2005) over ``beams``."""
-    g = cfg.grid
-    return OccupancyGrid.build(beams, g.resolution_m, bounds, g.p_occupied, g.p_free, g.p_clamp)
+    """The occupancy-grid baseline (Thrun et al. 2005) over ``beams``, beams widened as configured."""
+    return OccupancyGrid.from_config(beams, cfg.grid, bounds)
 
 
 def union_bounds(*bounds: Bounds) -> Bounds:

@@ -11,8 +11,17 @@ Inputs come from the run folder: the scans (``scans.npz``), the configuration, t
   between keyframes keep their offset from their keyframe in the run's optimised trajectory.
 
 ``--covariances`` replaces the covariances (per-scan ``scan_after`` or keyframe ``after`` arrays, see
-:mod:`pipeline.artifacts`). Only what changed is recomputed: when poses, covariances, bounds, resolution and
-mapper equal those of the run's ``after`` map, that map is copied instead of rendered again.
+:mod:`pipeline.artifacts`). The scans mapped are those the run mapped (selected by motion along the run's
+odometry trajectory, as ``run`` selects them).
+
+Only what changed is recomputed (:class:`mapping.tiling.IncrementalMap`): when the grid (bounds,
+resolution), the mapping settings and the tile size are the run's, the run's ``after`` map is taken as it is
+and only the tiles that a moved beam (or, for GPPOL, a beam whose scan covariance changed) can reach are
+rendered again. The result is a full rendering, bit for bit, of beams each within ``scale.pose_tolerance_m``
+(default 1 um: text round trips of poses are not exact) of the new ones; with tolerances of 0 it equals a full
+rendering of the new beams bit for bit. ``summary.json["tiles"]`` reports the
+fraction of tiles recomputed. Otherwise (``--recompute``, other bounds, resolution or settings) every tile
+is rendered.
 """
 
 from __future__ import annotations
@@ -29,6 +38,7 @@ from mapping.train import GPParams, ParamsFileError
 from pipeline import mapping_stage as ms
 from pipeline.artifacts import (
     COVARIANCES_NPZ,
+    ODOMETRY_TUM,
     OPTIMIZED_TUM,
     SCANS_FILE,
     TRAJECTORY_DIR,
@@ -40,8 +50,9 @@ from pipeline.config import load_config, write_config
 from pipeline.errors import PipelineError
 from pipeline.map_exports import write_maps
 from pipeline.progress import Progress
-from pipeline.run import StageTimer, build_maps
+from pipeline.run import StageTimer, select_scans
 from pipeline.run_folder import check_output_dir, read_summary, staged_run_folder, write_summary
+from pipeline.scale import engine_name, tile_engine, tiled_map
 from slam import geometry as se2
 from slam.trajectory_io import read_g2o, read_tum, write_tum
 
@@ -110,10 +121,12 @@ def remap_run(
     overwrite: bool = False,
     recompute: bool = False,
     progress: Progress | None = None,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
     """Render a new map from the run folder ``run_dir``; writes ``out_dir`` (default ``RUN_DIR/remap``).
 
-    ``recompute`` renders the map even when nothing changed (instead of copying the run's ``after`` map).
+    ``recompute`` renders every tile (instead of updating the run's ``after`` map where poses changed);
+    ``scheduler``: where tiles are rendered (``"local"``, a Dask address; default: the configuration).
     """
     progress = progress or Progress()
     timer = StageTimer()
@@ -121,7 +134,8 @@ def remap_run(
     run_summary = read_summary(run_dir)
     out_dir = Path(out_dir) if out_dir is not None else run_dir / "remap"
     check_output_dir(out_dir, overwrite)
-    config = load_config(run_dir / "config.yaml", {"mapping": {"resolution_m": resolution_m}})
+    overrides = {"mapping": {"resolution_m": resolution_m}, "scale": {"scheduler": scheduler}}
+    config = load_config(run_dir / "config.yaml", overrides)
     cfg = config.mapping
     with timer("read"):
         stored = read_scans(run_dir / SCANS_FILE)
@@ -130,6 +144,9 @@ def remap_run(
         run_stamps, run_poses = read_tum(traj_dir / OPTIMIZED_TUM)
         if not np.array_equal(run_stamps, scans.stamps_ns):
             raise PipelineError(f"{traj_dir / OPTIMIZED_TUM}: its stamps are not those of {SCANS_FILE}")
+        odo_stamps, odo_poses = read_tum(traj_dir / ODOMETRY_TUM)
+        if not np.array_equal(odo_stamps, scans.stamps_ns):
+            raise PipelineError(f"{traj_dir / ODOMETRY_TUM}: its stamps are not those of {SCANS_FILE}")
         if poses is None:
             new_poses = run_poses
         elif Path(poses).suffix.lower() == ".g2o":
@@ -152,24 +169,39 @@ def remap_run(
     run_bounds = tuple(run_map["bounds_xy_m"])
     map_bounds = parse_bounds(bounds) or run_bounds
     run_config = load_config(run_dir / "config.yaml")
-    unchanged = (
+    # the run's after map can be updated in place when it lies on the same tiles with the same settings
+    incremental = (
         not recompute
-        and np.array_equal(new_poses, run_poses)
-        and (cfg.mapper == "gpfol" or np.array_equal(new_cov, run_cov))
         and tuple(map_bounds) == run_bounds
         and cfg == run_config.mapping
+        and config.scale.tile_cells == run_config.scale.tile_cells
     )
+    laser = stored.laser_in_base_xytheta
+    selected = select_scans(odo_poses, laser, cfg)
     with staged_run_folder(out_dir, overwrite) as stage:
         write_config(config, stage / "config.yaml")
         (stage / TRAJECTORY_DIR).mkdir()
         write_tum(stage / TRAJECTORY_DIR / "remap.tum", scans.stamps_ns, new_poses)
-        if unchanged:
-            layers = {MAP_NAME: read_layers_npz(run_dir / "maps" / "after" / "layers.npz")}
-        else:
-            trajectories = {MAP_NAME: (new_poses, new_cov)}
-            layers, _, _, _ = build_maps(
-                scans, stored.laser_in_base_xytheta, trajectories, config, timer, progress, params, map_bounds
-            )
+        new_beams = ms.make_beams(scans, new_poses, laser, cfg, selected)
+        sc = config.scale
+        with timer(f"map_{MAP_NAME}"), tile_engine(sc) as renderer:
+            if incremental:
+                run_layers = read_layers_npz(run_dir / "maps" / "after" / "layers.npz")
+                run_beams = ms.make_beams(scans, run_poses, laser, cfg, selected)
+                gp = tiled_map(run_beams, params, cfg, sc, map_bounds, run_cov, renderer, layers=run_layers)
+                with progress.stage("remap tiles", total=None) as bar:
+                    report = gp.update_poses(
+                        new_beams,
+                        new_cov,
+                        sc.pose_tolerance_m,
+                        sc.covariance_tolerance,
+                        on_tile=lambda _r: bar.advance(),
+                    )
+            else:
+                gp = tiled_map(new_beams, params, cfg, sc, map_bounds, new_cov, renderer)
+                with progress.stage("remap tiles", total=len(gp.grid)) as bar:
+                    report = gp.render_all(on_tile=lambda _r: bar.advance())
+        layers = {MAP_NAME: gp.layers()}
         (stage / "maps").mkdir()
         shutil.copyfile(ms.params_path(run_dir / "maps"), ms.params_path(stage / "maps"))
         with timer("export"):
@@ -188,7 +220,15 @@ def remap_run(
             "run_dir": str(run_dir),
             "poses": str(poses) if poses is not None else str(traj_dir / OPTIMIZED_TUM),
             "covariances": str(cov_file),
-            "recomputed": not unchanged,
+            "recomputed": report.tiles_recomputed > 0,
+            "tiles": {
+                **report.to_dict(),
+                "tile_cells": sc.tile_cells,
+                "incremental": incremental,
+                "pose_tolerance_m": sc.pose_tolerance_m,
+                "covariance_tolerance": sc.covariance_tolerance,
+                "engine": engine_name(sc),
+            },
             "mapper": cfg.mapper,
             "counts": {"scans": len(scans), "beams": int(scans.beam_counts().sum())},
             "map": {
@@ -202,7 +242,8 @@ def remap_run(
         summary["table"] = {
             "run": str(run_dir),
             "poses": summary["poses"],
-            "recomputed": "yes" if not unchanged else "no (same poses, covariances, bounds: copied)",
+            "tiles recomputed": f"{report.tiles_recomputed} of {report.tiles_total}"
+            + (" (the run's map updated where poses changed)" if incremental else " (full rendering)"),
             "map": f"{m.shape[1]} x {m.shape[0]} cells at {m.resolution_m} m ({cfg.mapper})",
             "wall time (s)": round(timer.total(), 2),
         }

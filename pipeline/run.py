@@ -21,12 +21,14 @@ from datasets.registry import guess_format, open_dataset
 from datasets.types import Recording
 from mapping.beams import compose_laser_poses, select_scans_by_motion
 from mapping.exports import MapLayers
+from mapping.tiling import IncrementalMap, TileRenderer, render_serial
 from pipeline import mapping_stage as ms
 from pipeline.artifacts import SCANS_FILE, TRAJECTORY_DIR, write_scans, write_trajectories
 from pipeline.config import Config, load_config, write_config
 from pipeline.map_exports import max_variance, write_maps
 from pipeline.progress import Progress
 from pipeline.run_folder import check_output_dir, staged_run_folder, write_summary
+from pipeline.scale import engine_name, tile_engine, tiled_map
 from slam.metrics import ate_rmse
 from slam.system import SlamResult, run_slam_recording
 from slam.trajectory_io import read_tum
@@ -77,19 +79,21 @@ def build_maps(
     progress: Progress,
     params: ms.GPParams | None = None,
     bounds: ms.Bounds | None = None,
-) -> tuple[dict[str, MapLayers], dict[str, Any], ms.GPParams, ms.Bounds]:
+    selected: np.ndarray | None = None,
+    renderer: TileRenderer = render_serial,
+) -> tuple[dict[str, MapLayers], dict[str, IncrementalMap], ms.GPParams, ms.Bounds]:
     """GP maps for each named trajectory ``{name: (base poses (N,3), covariances (N,3,3) | None)}``.
 
-    The scans mapped are selected by motion along the first trajectory (:func:`select_scans_by_motion`), the
-    same for every map. Hyperparameters are learnt once (on the first trajectory's beams) unless ``params``
-    is given; every map is rendered on the same grid (``bounds``: default the union of the data bounds).
-    Returns the layers, the map objects, the parameters and the bounds.
+    The scans mapped are ``selected`` (default: selected by motion along the first trajectory,
+    :func:`select_scans`), the same for every map. Hyperparameters are learnt once (on the first
+    trajectory's beams) unless ``params`` is given; every map is rendered on the same grid (``bounds``:
+    default the union of the data bounds), tile by tile (:mod:`pipeline.scale`) with the engine ``renderer``.
+    Returns the layers, the tiled maps (:class:`mapping.tiling.IncrementalMap`, ready for incremental
+    updates), the parameters and the bounds.
     """
     cfg = config.mapping
-    first_poses = next(iter(trajectories.values()))[0]
-    selected = select_scans_by_motion(
-        compose_laser_poses(first_poses, laser_in_base), cfg.scan_min_travel_m, cfg.scan_min_rotation_rad
-    )
+    if selected is None:
+        selected = select_scans(next(iter(trajectories.values()))[0], laser_in_base, cfg)
     beams = {
         name: ms.make_beams(rec_scans, poses, laser_in_base, cfg, selected)
         for name, (poses, _) in trajectories.items()
@@ -102,13 +106,45 @@ def build_maps(
     if bounds is None:
         bounds = ms.union_bounds(*(b.bounds_xy_m(MAP_MARGIN_M) for b in beams.values()))
     layers: dict[str, MapLayers] = {}
-    gps: dict[str, Any] = {}
+    maps: dict[str, IncrementalMap] = {}
     for name, (_, cov) in trajectories.items():
-        with timer(f"map_{name}"), progress.stage(f"map {name}", total=1) as bar:
-            gps[name] = ms.build_gp_map(beams[name], params, cfg, cov)
-            layers[name] = gps[name].render(bounds, cfg.resolution_m)
-            bar.advance()
-    return layers, gps, params, bounds
+        with timer(f"map_{name}"):
+            if renderer is render_serial:
+                # In one process the whole map at once is faster than tile by tile (one neighbour index
+                # instead of one per tile) and gives the same map (bit for bit here; to a float32 ulp on
+                # some CPUs: tests/layer_checks.py); the tiled map adopts it, ready for incremental updates.
+                with progress.stage(f"map {name}", total=1) as bar:
+                    whole = ms.build_gp_map(beams[name], params, cfg, cov).render(bounds, cfg.resolution_m)
+                    bar.advance()
+                maps[name] = tiled_map(
+                    beams[name], params, cfg, config.scale, bounds, cov, renderer, layers=whole
+                )
+            else:
+                maps[name] = tiled_map(beams[name], params, cfg, config.scale, bounds, cov, renderer)
+                with progress.stage(f"map {name}", total=len(maps[name].grid)) as bar:
+                    maps[name].render_all(on_tile=lambda _r, bar=bar: bar.advance())
+            layers[name] = maps[name].layers()
+    return layers, maps, params, bounds
+
+
+def select_scans(first_poses: np.ndarray, laser_in_base: np.ndarray, cfg) -> np.ndarray:
+    """Indices of the scans a run maps: selected by motion (:func:`select_scans_by_motion`) along the laser
+    poses of the base poses ``first_poses`` (N, 3) -- in a run, the odometry trajectory."""
+    return select_scans_by_motion(
+        compose_laser_poses(first_poses, laser_in_base), cfg.scan_min_travel_m, cfg.scan_min_rotation_rad
+    )
+
+
+def tiles_summary(maps: dict[str, IncrementalMap], config: Config) -> dict[str, Any]:
+    """``summary.json["tiles"]``: the tiling and the engine of the maps."""
+    first = next(iter(maps.values()))
+    return {
+        "tile_cells": config.scale.tile_cells,
+        "count": len(first.grid),
+        "engine": engine_name(config.scale),
+        "support_beams_mean": {k: float(np.mean(m.support_beams)) for k, m in maps.items()},
+        "tile_seconds_sum": {k: float(np.sum(m.tile_seconds)) for k, m in maps.items()},
+    }
 
 
 def run_pipeline(
@@ -121,8 +157,11 @@ def run_pipeline(
     mapper: str | None = None,
     overwrite: bool = False,
     progress: Progress | None = None,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
-    """The full pipeline on one recording; writes the run folder ``out_dir`` and returns its summary."""
+    """The full pipeline on one recording; writes the run folder ``out_dir`` and returns its summary.
+    ``scheduler``: where map tiles are rendered (``"local"``, a Dask address; default: the configuration).
+    """
     progress = progress or Progress()
     timer = StageTimer()
     input_path = Path(input_path)
@@ -131,6 +170,7 @@ def run_pipeline(
         {
             "input": {"scan_topic": scan_topic, "odom_topic": odom_topic},
             "mapping": {"resolution_m": resolution_m, "mapper": mapper},
+            "scale": {"scheduler": scheduler},
         },
     )
     out_dir = Path(out_dir) if out_dir is not None else Path("out") / input_path.name.split(".")[0]
@@ -154,9 +194,10 @@ def run_pipeline(
             "before": (read_tum(files["odometry"])[1], slam.cov_before_xytheta),
             "after": (read_tum(files["optimized"])[1], slam.cov_after_xytheta),
         }
-        layers, gps, params, bounds = build_maps(
-            rec.scans, rec.laser_in_base_xytheta, trajectories, config, timer, progress
-        )
+        with tile_engine(config.scale) as renderer:
+            layers, maps, params, bounds = build_maps(
+                rec.scans, rec.laser_in_base_xytheta, trajectories, config, timer, progress, renderer=renderer
+            )
         (stage / "maps").mkdir()
         params.save(ms.params_path(stage / "maps"))
         with timer("export"), progress.stage("export", total=1) as bar:
@@ -172,15 +213,19 @@ def run_pipeline(
             )
             bar.advance()
         with timer("evaluate"):
-            metrics = evaluate_run(input_path, rec, slam, gps)
+            metrics = evaluate_run(input_path, rec, slam, maps)
         summary = make_summary(input_path, rec, slam, config, layers["after"], bounds, params, metrics, timer)
+        summary["tiles"] = tiles_summary(maps, config)
         write_summary(stage, summary)
     return summary
 
 
-def evaluate_run(input_path: Path, rec: Recording, slam: SlamResult, gps: dict[str, Any]) -> dict[str, Any]:
+def evaluate_run(
+    input_path: Path, rec: Recording, slam: SlamResult, maps: dict[str, IncrementalMap]
+) -> dict[str, Any]:
     """ATE before / after against the recording's reference poses, AUC before / after against a
-    ground-truth raster beside the input (simulated worlds); None where there is no reference."""
+    ground-truth raster beside the input (simulated worlds, scored by the map of all the beams); None where
+    there is no reference."""
     metrics: dict[str, Any] = {"ate_rmse_m": None, "auc": None}
     if rec.reference is not None and len(rec.reference) == len(slam.stamps_ns):
         ref = rec.reference.poses_xytheta
@@ -194,8 +239,10 @@ def evaluate_run(input_path: Path, rec: Recording, slam: SlamResult, gps: dict[s
     if gt_path.is_file():
         gt = load_ground_truth(gt_path)
         metrics["auc"] = {
-            name: ms.ground_truth_auc(gp, gt.occupancy, gt.origin_xy_m, gt.resolution_m)
-            for name, gp in gps.items()
+            name: ms.ground_truth_auc(
+                m.factory(m.beams, m.cov_xytheta), gt.occupancy, gt.origin_xy_m, gt.resolution_m
+            )
+            for name, m in maps.items()
         }
         metrics["auc_ground_truth"] = str(gt_path)
     return metrics
@@ -270,7 +317,11 @@ def make_summary(
 
 
 def run_demo(
-    out: Path = Path("out/demo"), seed: int = 0, overwrite: bool = False, progress: Progress | None = None
+    out: Path = Path("out/demo"),
+    seed: int = 0,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+    scheduler: str | None = None,
 ) -> dict[str, Any]:
     """Simulate the ``loop`` world into ``OUT/input/loop.mcap`` and run the full pipeline into ``OUT/run``."""
     from datasets.simulation import simulate
@@ -282,4 +333,4 @@ def run_demo(
     if not bag.exists():
         bag.parent.mkdir(parents=True, exist_ok=True)
         simulate("loop", bag, seed=seed)
-    return run_pipeline(bag, run_dir, overwrite=overwrite, progress=progress)
+    return run_pipeline(bag, run_dir, overwrite=overwrite, progress=progress, scheduler=scheduler)

@@ -22,6 +22,7 @@ from datasets.ros.maps import read_map_bag
 from mapping.exports import read_layers_npz, read_map_server
 from pipeline.run import run_pipeline
 from tests.conftest import REPO, data_file
+from tests.layer_checks import assert_same_map
 
 FAST_TRAINING = {"mapping": {"train_anneal_evaluations": 20, "train_lbfgs_iterations": 20}}
 
@@ -132,8 +133,7 @@ def test_remap_with_own_trajectory_reproduces_after_map(loop_run) -> None:
     assert json.loads(result.stdout)["recomputed"] is True
     a = read_layers_npz(loop_run / "maps/after/layers.npz")
     b = read_layers_npz(loop_run / "remap/maps/remap/layers.npz")
-    for name in ("probability", "mean", "variance"):
-        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert_same_map(a, b)
     # without --recompute nothing changed, so nothing is recomputed
     result = run_cli("remap", str(loop_run), "--out", str(loop_run.parent / "copy"), "--json")
     assert result.returncode == 0 and json.loads(result.stdout)["recomputed"] is False
@@ -283,3 +283,54 @@ def test_run_on_intel(tmp_path) -> None:
     h, w = summary["map"]["shape_hw"]
     assert 300 < h < 700 and 300 < w < 700  # the lab is about 40 m x 40 m at 0.1 m
     assert os.path.getsize(out / "maps/after/occupancy.pgm") > h * w
+
+
+def test_run_summary_reports_its_tiles(loop_run) -> None:
+    summary = json.loads((loop_run / "summary.json").read_text())
+    tiles = summary["tiles"]
+    h, w = summary["map"]["shape_hw"]
+    t = tiles["tile_cells"]
+    assert tiles["count"] == -(-h // t) * -(-w // t) and tiles["engine"] == "serial"
+    assert 0 < tiles["support_beams_mean"]["after"] < summary["counts"]["beams"]
+
+
+@pytest.mark.slow
+def test_remap_after_a_local_correction_recomputes_only_the_tiles_it_reaches(loop_run, tmp_path) -> None:
+    """A loop-closure-like correction of part of the trajectory: the incremental remap (on a local Dask
+    cluster) equals a full serial recomputation bit for bit and re-renders a fraction of the tiles."""
+    from slam.trajectory_io import read_tum, write_tum
+
+    stamps, poses = read_tum(loop_run / "trajectory/optimized.tum")
+    first, last = 200, 240  # turn this stretch by 0.02 rad about its first pose
+    c, s = np.cos(0.02), np.sin(0.02)
+    d = poses[first : last + 1, :2] - poses[first, :2]
+    poses[first : last + 1, :2] = poses[first, :2] + d @ np.array([[c, -s], [s, c]]).T
+    poses[first : last + 1, 2] += 0.02
+    write_tum(tmp_path / "stretch.tum", stamps[first : last + 1], poses[first : last + 1])
+    # the other lines stay as they are: reading and writing a TUM file changes the last bits of the yaws
+    lines = (loop_run / "trajectory/optimized.tum").read_text().splitlines(keepends=True)
+    body = [i for i, line in enumerate(lines) if not line.startswith("#")]
+    stretch = (tmp_path / "stretch.tum").read_text().splitlines(keepends=True)
+    new = [line for line in stretch if not line.startswith("#")]
+    for i, line in zip(body[first : last + 1], new, strict=True):
+        lines[i] = line
+    (tmp_path / "corrected.tum").write_text("".join(lines))
+    runs = {}
+    for name, extra in (("incremental", ["--scheduler", "local"]), ("full", ["--recompute"])):
+        res = run_cli(
+            "remap", str(loop_run), "--poses", str(tmp_path / "corrected.tum"), "--out", str(tmp_path / name),
+            "--json", *extra,
+        )  # fmt: skip
+        assert res.returncode == 0, res.stderr
+        runs[name] = json.loads(res.stdout)
+    inc, full = runs["incremental"]["tiles"], runs["full"]["tiles"]
+    assert inc["incremental"] and inc["engine"] == "dask-local" and not full["incremental"]
+    assert full["fraction_recomputed"] == 1.0
+    # a 30 m laser sees most of this 80 m x 50 m world from the stretch: a third of the tiles
+    assert 0 < inc["fraction_recomputed"] < 0.6 and inc["tiles_total"] == full["tiles_total"]
+    assert inc["changed_beams"] == 41 * 360
+    a = read_layers_npz(tmp_path / "incremental/maps/remap/layers.npz")
+    b = read_layers_npz(tmp_path / "full/maps/remap/layers.npz")
+    assert_same_map(a, b)
+    after = read_layers_npz(loop_run / "maps/after/layers.npz")
+    assert not np.array_equal(a.probability, after.probability)
