@@ -9,7 +9,8 @@ segment). The free part of a segment can stop ``free_margin_m`` short of its end
 behind a wall is not given a free point lying on the wall's own occupied endpoint.
 
 For GPPOL (issue 5) each beam keeps what the unscented transform (:mod:`mapping.unscented`) needs: its
-measured range and bearing in the laser frame, the laser's heading, the laser mounting on the base (so that the
+measured range and bearing in the laser frame, the laser's heading, the laser mounting on the base (so that
+the
 base pose, whose covariance SLAM gives, is recovered exactly), the index of its scan (the caller's pose
 covariances are indexed by it) and its sensor (per-source noise settings).
 """

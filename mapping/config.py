@@ -107,10 +107,11 @@ class MappingConfig(BaseModel):
         description="covariance function of GPPOL (GPFOL uses 'kernel'); SE integrates in closed form "
         "(eq. 19), the others by Gauss-Hermite quadrature (eq. 23)",
     )
-    gppol_expectation: Literal["auto", "girard", "gauss_hermite"] = Field(
+    gppol_expectation: Literal["auto", "girard", "gauss_hermite", "sigma_points"] = Field(
         "auto",
         description="how the kernel is integrated over the inputs: Girard's closed form (SE only), "
-        "Gauss-Hermite quadrature, or auto (Girard for SE, else Gauss-Hermite)",
+        "Gauss-Hermite quadrature (gppol_gh_level), the 5-node sigma-point rule, or auto (Girard for SE, "
+        "else Gauss-Hermite)",
     )
     gppol_gh_level: int = Field(
         3, ge=1, le=10, description="Gauss-Hermite nodes per input dimension (1: the kernel at the means)"
@@ -126,7 +127,8 @@ class MappingConfig(BaseModel):
     )
     gppol_free_range_noise: bool = Field(
         True,
-        description="free points get the range variance too (Algorithm 3, steps 5-8); false: only bearing and "
+        description="free points get the range variance too (Algorithm 3, steps 5-8); false: only bearing "
+        "and "
         "pose noise (the free point's distance along the beam is chosen, not measured)",
     )
     ut_alpha: float = Field(0.3, gt=0, le=10, description="unscented transform spread (the paper's xi)")
@@ -141,7 +143,9 @@ class MappingConfig(BaseModel):
                 f"({self.occupied_threshold})"
             )
         if self.gppol_expectation == "girard" and self.gppol_kernel != "se":
-            raise ValueError(f"gppol_expectation 'girard' is the SE kernel's closed form, not {self.gppol_kernel}")
+            raise ValueError(
+                f"gppol_expectation 'girard' is the SE kernel's closed form, not {self.gppol_kernel}"
+            )
         for name, (lo, hi) in self.kernel_bounds.items():
             if not 0 < lo < hi:
                 raise ValueError(f"kernel_bounds.{name} must be (low, high) with 0 < low < high")

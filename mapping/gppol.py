@@ -18,10 +18,11 @@ from numpy.typing import NDArray
 from mapping.beams import Beams
 from mapping.core import INPUTS_GH_DIFFERENCE, INPUTS_GH_NODES, INPUTS_GIRARD
 from mapping.kernels import Kernel
-from mapping.noisy_kernels import GIRARD, InputExpectation, gauss_hermite_2d
+from mapping.noisy_kernels import GIRARD, InputExpectation
 from mapping.unscented import BeamMoments, UTParams, beam_moments
 
 FloatArray = NDArray[np.float64]
+DEFAULT_EXPECTATION = InputExpectation()
 
 
 @dataclass(frozen=True)
@@ -36,7 +37,7 @@ def input_moments(
     beams: Beams,
     pose_cov_xytheta: FloatArray | None,
     noise_by_source: list[SensorNoise] | tuple[SensorNoise, ...],
-    ut: UTParams = UTParams(),
+    ut: UTParams | None = None,
 ) -> BeamMoments:
     """UT coefficients of every beam (eqs. 24-28, exact in the distance along the beam).
 
@@ -65,7 +66,7 @@ def input_moments(
         var_r[src] if M else np.zeros(0),
         var_b[src] if M else np.zeros(0),
         beams.laser_in_base_xytheta,
-        ut,
+        ut or UTParams(),
     )
 
 
@@ -74,7 +75,7 @@ class GaussianInputs:
     """What makes a map GPPOL: the per-beam input Gaussians and how kernels are integrated over them."""
 
     moments: BeamMoments
-    expectation: InputExpectation = InputExpectation()
+    expectation: InputExpectation = DEFAULT_EXPECTATION
     free_moments: BeamMoments | None = None  # free points' coefficients if they differ (no range noise)
 
     def free(self) -> BeamMoments:
@@ -89,8 +90,8 @@ class GaussianInputs:
         return INPUTS_GH_DIFFERENCE if kernel.stationary else INPUTS_GH_NODES
 
     def rule(self) -> tuple[FloatArray, FloatArray]:
-        """The 2-D Gauss-Hermite nodes (m, 2) and weights (m,) the core uses (unused by Girard's form)."""
-        z, w = gauss_hermite_2d(self.expectation.level)
+        """The 2-D quadrature nodes (m, 2) and weights (m,) the core uses (unused by Girard's form)."""
+        z, w = self.expectation.rule()
         return np.ascontiguousarray(z), np.ascontiguousarray(w)
 
     def core_arrays(self, beams: Beams, hit_beam: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:

@@ -165,7 +165,8 @@ class BeamIndex:
     ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
         """GPPOL local training sets of (Q, 2) queries: input means X (Q', n, 2) centred on each query, their
         covariances (Q', n, 2, 2) from the per-beam UT ``moments`` (endpoints at d = range, free points at
-        d = t |free part|; ``free_moments`` for the free points if given), labels y (Q', n), for the Q' queries
+        d = t |free part|; ``free_moments`` for the free points if given), labels y (Q', n), for the Q'
+        queries
         with a full neighbourhood (mask (Q,))."""
         q = np.asarray(queries_xy_m, dtype=np.float64).reshape(-1, 2)
         occ, free, t = self.gather(q, k_occ, k_free)
@@ -177,6 +178,8 @@ class BeamIndex:
         d_free = t * free_len[free]
         fm = moments if free_moments is None else free_moments
         X = np.concatenate([moments.mean_at(d_occ, hb), fm.mean_at(d_free, free)], axis=1) - q[:, None, :]
-        cov = unpack_cov(np.concatenate([moments.packed_cov_at(d_occ, hb), fm.packed_cov_at(d_free, free)], 1))
+        cov = unpack_cov(
+            np.concatenate([moments.packed_cov_at(d_occ, hb), fm.packed_cov_at(d_free, free)], 1)
+        )
         y = np.concatenate([np.ones((q.shape[0], k_occ)), -np.ones((q.shape[0], k_free))], axis=1)
         return X, cov, y, full

@@ -5,7 +5,8 @@ a test point ``x*`` is deterministic. The GP of GPPOL uses
 
 - ``K_ij = E[k(x_i, x_j)]`` for i != j over INDEPENDENT draws (eq. 17);
 - ``K_ii = E[k(x_i, x_i)]`` under ONE draw (SPEC section 5; not the double integral of eq. 17, which would
-  treat a point as two independent copies of itself). ``K_ii - E[k(x_i, x_i')]`` then acts as an input-dependent
+  treat a point as two independent copies of itself). ``K_ii - E[k(x_i, x_i')]`` then acts as an
+  input-dependent
   noise: a noisy input weighs less;
 - ``k*_i = E[k(x*, x_i)]`` over the training input only.
 
@@ -24,10 +25,19 @@ Methods:
   ``k_n = sf^2 |I + (Sigma_i + Sigma_j) / l^2|^(-1/2) exp(-d^T (l^2 I + Sigma_i + Sigma_j)^-1 d / 2)``,
   ``d = rho_i - rho_j``; with a deterministic test point ``Sigma_j = 0``;
 - ``gauss_hermite``: tensor-product Gauss-Hermite quadrature (eqs. 20-23) with ``level`` = eta nodes per input
-  dimension (eta^2 per 2-D input; level 1 is the kernel at the means, i.e. GPFOL). Any kernel: the double sum of
+  dimension (eta^2 per 2-D input; level 1 is the kernel at the means, i.e. GPFOL). Any kernel: the double
+  sum of
   eq. (23) over the nodes ``phi = rho + sqrt(2) chol(Sigma) psi`` of both inputs (eta^4 terms per pair); a
   stationary kernel: the same integral as eta^2 nodes of the difference ``x_i - x_j`` (exact rewriting for
-  independent inputs). Converges to eq. (19) for SE as the level rises (the paper's Figure 5; tested).
+  independent inputs). Converges to eq. (19) for SE as the level rises (the paper's Figure 5; tested);
+- ``sigma_points``: the same sums over a 5-node rule per input (the centre and +-sqrt(3) sigma on each axis,
+  :func:`sigma_point_rule_2d`): 25 kernel evaluations per pair instead of the level-3 rule's 81.
+
+Measured (``gppol_choices`` of ``bench``, and the two-platform / Intel runs of the GPPOL report): SE with
+Girard's form is the fastest (about 50k queries per CPU second on the Intel map) and the default; the NN
+kernel
+needs quadrature (sigma points: about 15k per CPU second, Gauss-Hermite level 2: 30k, level 3: 7k) and, like
+GPFOL's NN kernel, extrapolates walls into never-observed space.
 
 :class:`InputExpectation` evaluates these on batches of local problems (numpy, with gradients w.r.t. the
 kernel's log hyperparameters, for training); the compiled core (:mod:`mapping.core`) evaluates the same
@@ -48,12 +58,14 @@ FloatArray = NDArray[np.float64]
 
 GIRARD = "girard"
 GAUSS_HERMITE = "gauss_hermite"
-METHODS = (GIRARD, GAUSS_HERMITE)
+SIGMA_POINTS = "sigma_points"
+METHODS = (GIRARD, GAUSS_HERMITE, SIGMA_POINTS)
 
 
 @lru_cache(maxsize=32)
 def hermite_rule(level: int) -> tuple[FloatArray, FloatArray]:
-    """Nodes psi_m (roots of H_eta) and weights w_m of eqs. (20)-(21): ``int e^(-psi^2) f ~ sum w_m f(psi_m)``."""
+    """Nodes psi_m (roots of H_eta) and weights w_m of eqs. (20)-(21):
+    ``int e^(-psi^2) f ~ sum w_m f(psi_m)``."""
     if not 1 <= level <= 40:
         raise ValueError(f"Gauss-Hermite level must be in 1..40, got {level}")
     psi, w = np.polynomial.hermite.hermgauss(level)
@@ -63,7 +75,8 @@ def hermite_rule(level: int) -> tuple[FloatArray, FloatArray]:
 @lru_cache(maxsize=32)
 def gauss_hermite_2d(level: int) -> tuple[FloatArray, FloatArray]:
     """(eta^2, 2) standard nodes ``sqrt(2) psi`` and (eta^2,) weights summing to 1 of the tensor rule for the
-    expectation under N(0, I_2): ``E f(z) ~ sum_a w_a f(z_a)``; for N(rho, Sigma), ``rho + chol(Sigma) z_a``."""
+    expectation under N(0, I_2): ``E f(z) ~ sum_a w_a f(z_a)``; for N(rho, Sigma),
+    ``rho + chol(Sigma) z_a``."""
     psi, w = hermite_rule(level)
     gx, gy = np.meshgrid(psi, psi, indexing="ij")
     nodes = np.sqrt(2.0) * np.stack([gx.ravel(), gy.ravel()], axis=1)
@@ -71,8 +84,27 @@ def gauss_hermite_2d(level: int) -> tuple[FloatArray, FloatArray]:
     return nodes, weights
 
 
+@lru_cache(maxsize=4)
+def sigma_point_rule_2d() -> tuple[FloatArray, FloatArray]:
+    """The 5-node symmetric rule for E f(z), z ~ N(0, I_2): the centre (weight 1/3) and +-sqrt(3) on each axis
+    (1/6 each) -- the sigma points of the unscented transform with ``n + kappa = 3`` (Julier's choice for a
+    Gaussian), exact for polynomials of degree 3 and for the 4th moments along the axes. A sparse
+    stand-in for the 9-node level-3 Gauss-Hermite rule (same nodes on the axes): 25 instead of 81 kernel
+    evaluations per pair of inputs."""
+    r = np.sqrt(3.0)
+    nodes = np.array([[0.0, 0.0], [r, 0.0], [-r, 0.0], [0.0, r], [0.0, -r]])
+    return nodes, np.array([1.0 / 3.0] + [1.0 / 6.0] * 4)
+
+
+def rule_2d(method: str, level: int) -> tuple[FloatArray, FloatArray]:
+    """Standard nodes (m, 2) and weights (m,) of ``method``'s 2-D rule (Girard's form needs none: level 1)."""
+    if method == SIGMA_POINTS:
+        return sigma_point_rule_2d()
+    return gauss_hermite_2d(level if method == GAUSS_HERMITE else 1)
+
+
 def chol2(cov: FloatArray) -> FloatArray:
-    """Lower Cholesky factors of (..., 2, 2) positive SEMI-definite matrices (a zero where a pivot vanishes)."""
+    """Lower Cholesky factors of (..., 2, 2) positive SEMI-definite matrices (zero where a pivot vanishes)."""
     c = np.asarray(cov, dtype=np.float64)
     a, b, d = c[..., 0, 0], 0.5 * (c[..., 0, 1] + c[..., 1, 0]), c[..., 1, 1]
     l00 = np.sqrt(np.maximum(a, 0.0))
@@ -112,8 +144,9 @@ def girard_se(
 
 @dataclass(frozen=True)
 class InputExpectation:
-    """How a kernel is integrated over Gaussian training inputs: ``method`` (``girard``, SE only, or
-    ``gauss_hermite``) and the Gauss-Hermite ``level`` (nodes per input dimension)."""
+    """How a kernel is integrated over Gaussian training inputs: ``method`` (``girard``, SE only;
+    ``gauss_hermite``, with ``level`` nodes per input dimension; ``sigma_points``, the 5-node rule of
+    :func:`sigma_point_rule_2d`)."""
 
     method: str = GAUSS_HERMITE
     level: int = 3
@@ -122,6 +155,10 @@ class InputExpectation:
         if self.method not in METHODS:
             raise ValueError(f"unknown input expectation '{self.method}' (known: {', '.join(METHODS)})")
         hermite_rule(self.level)
+
+    def rule(self) -> tuple[FloatArray, FloatArray]:
+        """Standard 2-D nodes (m, 2) and weights (m,) summing to 1 (:func:`rule_2d`)."""
+        return rule_2d(self.method, self.level)
 
     def check(self, kernel: Kernel) -> None:
         if self.method == GIRARD and not isinstance(kernel, SquaredExponentialKernel):
@@ -145,13 +182,13 @@ class InputExpectation:
             if self.method == GIRARD:
                 out = girard_se(kernel, D, S, eval_gradient)
             else:
-                out = _gh_difference(kernel, D, S, self.level, eval_gradient)
+                out = _gh_difference(kernel, D, S, self.rule(), eval_gradient)
             # the diagonal, one draw: k(x, x) = k(0)
             k0 = kernel.of_difference(np.zeros((1, 2)), eval_gradient)
             if not eval_gradient:
                 return np.where(eye, k0[0], out)
             return np.where(eye, k0[0][0], out[0]), np.where(eye[..., None], k0[1][0], out[1])
-        return _gh_nodes_matrix(kernel, X, cov, self.level, eval_gradient)
+        return _gh_nodes_matrix(kernel, X, cov, self.rule(), eval_gradient)
 
     def diag(self, kernel: Kernel, X: FloatArray, cov: FloatArray) -> FloatArray:
         """(..., n) ``E[k(x_i, x_i)]`` under one draw."""
@@ -171,10 +208,10 @@ class InputExpectation:
         cov = np.asarray(cov, dtype=np.float64)
         if kernel.stationary:
             D = X[..., :, None, :] - Z[..., None, :, :]
-            S = np.broadcast_to(cov[..., :, None, :, :], D.shape + (2,))
+            S = np.broadcast_to(cov[..., :, None, :, :], (*D.shape, 2))
             if self.method == GIRARD:
                 return girard_se(kernel, D, S)
-            return _gh_difference(kernel, D, S, self.level, False)
+            return _gh_difference(kernel, D, S, self.rule(), False)
         nodes, w = self.nodes(X, cov)  # (..., n, a, 2)
         lead = nodes.shape[:-3]
         n, a = nodes.shape[-3], nodes.shape[-2]
@@ -182,17 +219,17 @@ class InputExpectation:
         return np.einsum("a,...am->...m", w, Kn.reshape(*lead, n, a, Z.shape[-2]))
 
     def nodes(self, X: FloatArray, cov: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Gauss-Hermite nodes (..., n, eta^2, 2) of each input and the (eta^2,) weights (eq. 23)."""
-        z, w = gauss_hermite_2d(self.level)
+        """Quadrature nodes (..., n, m, 2) of each input and the (m,) weights (eq. 23)."""
+        z, w = self.rule()
         Lc = chol2(cov)
         return np.asarray(X)[..., None, :] + np.einsum("...pq,aq->...ap", Lc, z), w
 
 
 def _gh_difference(
-    kernel: Kernel, D: FloatArray, S: FloatArray, level: int, eval_gradient: bool
+    kernel: Kernel, D: FloatArray, S: FloatArray, rule: tuple[FloatArray, FloatArray], eval_gradient: bool
 ) -> FloatArray | tuple[FloatArray, FloatArray]:
-    """E[k(z)], z ~ N(D, S), by the 2-D tensor Gauss-Hermite rule (stationary kernels)."""
-    z, w = gauss_hermite_2d(level)
+    """E[k(z)], z ~ N(D, S), by the 2-D rule ``(nodes, weights)`` (stationary kernels)."""
+    z, w = rule
     nodes = D[..., None, :] + np.einsum("...pq,aq->...ap", chol2(S), z)
     if not eval_gradient:
         return np.einsum("a,...a->...", w, kernel.of_difference(nodes))
@@ -201,11 +238,11 @@ def _gh_difference(
 
 
 def _gh_nodes_matrix(
-    kernel: Kernel, X: FloatArray, cov: FloatArray, level: int, eval_gradient: bool
+    kernel: Kernel, X: FloatArray, cov: FloatArray, rule: tuple[FloatArray, FloatArray], eval_gradient: bool
 ) -> FloatArray | tuple[FloatArray, FloatArray]:
     """Eq. (23) for any kernel: K_ij = sum_ab w_a w_b k(phi_ia, phi_jb) (i != j), K_ii = sum_a w_a
     k(phi_ia, phi_ia)."""
-    z, w = gauss_hermite_2d(level)
+    z, w = rule
     nodes = X[..., None, :] + np.einsum("...pq,aq->...ap", chol2(cov), z)  # (..., n, a, 2)
     lead = nodes.shape[:-3]
     n, a = nodes.shape[-3], nodes.shape[-2]

@@ -268,7 +268,16 @@ def train_gp(
     if expectation is not None:
         expectation.check(kernel)
     trained, nv, info = train_hyperparameters(
-        kernel, X, y, noise_var, maxfun, maxiter, seed, learn_noise=learn_noise, cov=cov, expectation=expectation
+        kernel,
+        X,
+        y,
+        noise_var,
+        maxfun,
+        maxiter,
+        seed,
+        learn_noise=learn_noise,
+        cov=cov,
+        expectation=expectation,
     )
     mu, var = loo_predictions(trained, X, y, nv, cov, expectation)
     alpha, beta = fit_pls(mu, var, y)

@@ -5,12 +5,13 @@ the robot's BASE in the world, with covariance ``blockdiag(var_r, var_b, Sigma_p
 ``Sigma_pose`` the full 3x3 world-frame base-pose covariance, correlated terms kept). Its world point is
 (Algorithm 2 with the laser mounting ``m = (m_x, m_y, m_theta)`` inside ``g``)::
 
-    g(r, b, x, y, theta) = (x, y) + R(theta) (m_x, m_y) + r (cos(theta + m_theta + b), sin(theta + m_theta + b))
+    g(r, b, x, y, theta) = (x, y) + R(theta) (m_x, m_y) + r (cos(phi), sin(phi)),  phi = theta + m_theta + b
 
 Exact shortcut for the free points (Algorithm 3, steps 5-8: the same transform with ``r = d``). The square
 root of a block-diagonal covariance is block-diagonal, so every sigma point (eq. 24) either shifts the range
-alone (by a constant ``+-c sigma_r``) or leaves it at ``d``; its image is ``P_k + d u_k`` (``u_k`` the unit beam
-direction of the sigma point), LINEAR in ``d``. Hence the UT mean (eq. 27) and covariance (eq. 28) of the point
+alone (by a constant ``+-c sigma_r``) or leaves it at ``d``; its image is ``P_k + d u_k`` (``u_k`` the unit
+beam direction of the sigma point), LINEAR in ``d``. Hence the UT mean (eq. 27) and covariance (eq. 28) of the
+point
 at distance ``d`` along the beam are, exactly::
 
     rho(d) = a + d b                       a = sum_k wm_k P_k,  b = sum_k wm_k u_k
@@ -21,7 +22,8 @@ with per-beam coefficients computed once (:func:`beam_moments`); the occupied en
 approximation beyond the UT itself: ``tests/test_mapping_unscented.py`` checks it against a UT run at each d.
 
 UT scaling (eqs. 24-25; ``alpha`` is the paper's xi, ``beta`` its rho, ``kappa``): default ``alpha = 0.3,
-beta = 2, kappa = 0`` (sigma points at +-0.67 standard deviations, ``wm_0 = -10.1``, ``wc_0 = -7.2``). Measured
+beta = 2, kappa = 0`` (sigma points at +-0.67 standard deviations, ``wm_0 = -10.1``, ``wc_0 = -7.2``).
+Measured
 against Monte Carlo (4e6 draws) on the beam map: with laser noise (2 cm, 0.1 deg) and a correlated pose
 covariance (0.1 m, 0.02 rad) every scaling in [1e-3, 1] is within the Monte Carlo noise (0.15 %); with a
 heading uncertainty of 0.1 rad at 10 m, ``alpha = 1`` is off by 4 % along the beam (its sigma points at
@@ -115,7 +117,9 @@ def beam_point(state: FloatArray, laser_in_base_xytheta: FloatArray | None = Non
     r, b, x, y, th = (s[..., i] for i in range(5))
     c, sn = np.cos(th), np.sin(th)
     ang = th + m[2] + b
-    return np.stack([x + c * m[0] - sn * m[1] + r * np.cos(ang), y + sn * m[0] + c * m[1] + r * np.sin(ang)], -1)
+    return np.stack(
+        [x + c * m[0] - sn * m[1] + r * np.cos(ang), y + sn * m[0] + c * m[1] + r * np.sin(ang)], -1
+    )
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
 """``evaluate map INPUT``: AUC of GPPOL, GPFOL and the occupancy-grid baseline (SPEC section 6).
 
 Ground-truth protocol when ``INPUT.gt.npz`` lies beside the input (simulated worlds: every cell of the
-raster scored), the hold-out protocol otherwise (blocks of scans held out, test points along their beams).
+raster scored; a world of several platforms is mapped from all their scan topics unless ``--scan-topic``
+says otherwise), the hold-out protocol otherwise (blocks of scans held out, test points along their beams).
 Maps are built from the input's reference poses; a recording without them is mapped on the optimised
 trajectory of the SLAM stage, whose marginal covariances GPPOL then uses, and the output says so (``poses``).
 
@@ -49,7 +50,7 @@ def make_beams(rec: Recording, base_poses: np.ndarray, indices: np.ndarray, cfg:
 
 
 def reference_base_poses(rec: Recording, input_path: Path) -> np.ndarray:
-    """(N, 3) base poses of the scans from the recording's reference poses (PipelineError when it has none)."""
+    """(N, 3) base poses of the scans from the recording's reference poses (PipelineError if it has none)."""
     if rec.scans is None or len(rec.scans) == 0:
         raise DatasetError(f"{input_path}: no laser scans to map")
     if rec.reference is None:
@@ -60,7 +61,7 @@ def reference_base_poses(rec: Recording, input_path: Path) -> np.ndarray:
 
 
 def reference_laser_poses(rec: Recording, input_path: Path) -> np.ndarray:
-    """(N, 3) laser poses from the recording's reference poses (PipelineError when it has none)."""
+    """(N, 3) laser poses from the recording's reference poses (PipelineError if it has none)."""
     return compose_laser_poses(reference_base_poses(rec, input_path), rec.laser_in_base_xytheta)
 
 
@@ -91,7 +92,7 @@ def mapping_laser_poses(
 def perturb(
     base_poses: np.ndarray, sigma_xy_m: float, sigma_theta_rad: float, seed: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Poses (N, 3) with seeded Gaussian noise (module docstring) and the (N, 3, 3) covariance given to GPPOL."""
+    """Poses (N, 3) with seeded Gaussian noise (module docstring), the (N, 3, 3) covariance given to GPPOL."""
     n = base_poses.shape[0]
     sigma = np.array([sigma_xy_m, sigma_xy_m, sigma_theta_rad], dtype=np.float64)
     z = np.random.default_rng(PERTURB_SEED_BASE + seed).standard_normal((n, 3))
@@ -107,7 +108,9 @@ def parse_perturbation(text: str | None) -> tuple[float, float] | None:
     except ValueError:
         values = []
     if len(values) != 2 or not all(np.isfinite(v) and v >= 0 for v in values):
-        raise PipelineError(f"--perturb-poses must be SIGMA_XY_M,SIGMA_THETA_RAD (two numbers >= 0), got {text!r}")
+        raise PipelineError(
+            f"--perturb-poses must be SIGMA_XY_M,SIGMA_THETA_RAD (two numbers >= 0), got {text!r}"
+        )
     return values[0], values[1]
 
 
@@ -208,7 +211,8 @@ def evaluate_ground_truth(
     every: int = 1,
 ) -> dict[str, Any]:
     """Score the cells of the ground-truth raster ``gt_path`` (SPEC section 6, simulated worlds; ``every``
-    > 1 scores every ``every``-th row and column only, for quick checks). Laser noise from the ground truth."""
+    > 1 scores every ``every``-th row and column only, for quick checks).
+    Laser noise from the ground truth."""
     from datasets.simulation import load_ground_truth
 
     gt = load_ground_truth(gt_path)
@@ -232,6 +236,13 @@ def evaluate_ground_truth(
     return {"per_seed": [row], "sensor_noise": noise, "sensor_noise_from": str(gt_path)}
 
 
+def _ground_truth_sources(gt_path: Path) -> int:
+    """Number of laser sources the simulator recorded in the ground truth ``gt_path``."""
+    from datasets.simulation import load_ground_truth
+
+    return len(load_ground_truth(gt_path).sources or ())
+
+
 def evaluate_map(
     input_path: Path,
     seeds: list[int] | None = None,
@@ -249,12 +260,14 @@ def evaluate_map(
     progress = progress or Progress()
     if isinstance(perturb_poses, str):
         perturb_poses = parse_perturbation(perturb_poses)
+    input_path = Path(input_path)
+    gt_path = Path(str(input_path) + ".gt.npz")
+    if scan_topic is None and gt_path.is_file() and _ground_truth_sources(gt_path) > 1:
+        scan_topic = "all"  # a simulated world of several platforms is scored on all their scans
     config = load_config(config_path, {"input": {"scan_topic": scan_topic}})
     cfg = config.mapping
-    input_path = Path(input_path)
     rec = open_dataset(input_path, config.input)
     base_poses, pose_source, cov = mapping_poses(rec, input_path, config.slam, progress)
-    gt_path = Path(str(input_path) + ".gt.npz")
     if gt_path.is_file():
         protocol = "ground_truth"
         used_seeds: list[int] = []

@@ -49,7 +49,8 @@ def sensor_noise(cfg: MappingConfig, source_names: tuple[str, ...] | list[str]) 
 
 
 def input_expectation(cfg: MappingConfig, kernel: Kernel) -> InputExpectation:
-    """How GPPOL integrates ``kernel`` over its inputs (``auto``: Girard's eq. 19 for SE, else Gauss-Hermite)."""
+    """How GPPOL integrates ``kernel`` over its inputs (``auto``: Girard's eq. 19 for SE, else
+    Gauss-Hermite)."""
     method = cfg.gppol_expectation
     if method == "auto":
         method = GIRARD if kernel.name == "se" else GAUSS_HERMITE
@@ -153,6 +154,8 @@ def build_gp_map(
     the laser noise per source of ``cfg``; GPFOL ignores them."""
     mapper = mapper or cfg.mapper
     check_mapper_available(mapper)
+    if mapper == "gpfol" and "inputs" in params.info:
+        raise PipelineError("these GP parameters were learnt for GPPOL: learn them with mapper='gpfol'")
     inputs = gaussian_inputs(beams, cfg, cov_xytheta, params.kernel) if mapper == "gppol" else None
     try:
         return GPOccupancyMap(
