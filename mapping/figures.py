@@ -203,7 +203,7 @@ def plot_method_rows(
     free_threshold: float = 0.35,
     tracks_xy_m: Mapping[str, NDArray] | None = None,
     width_in: float = 9.0,
-    dpi: int = 70,
+    dpi: int = 60,
 ) -> Path:
     """The paper's Figure 9: one row per method ``{name: layers}``, p(occupied) on the left and the
     classified map on the right; ``tracks_xy_m`` ``{label: (N, 2)}`` drawn on the first probability panel."""
@@ -232,16 +232,22 @@ def plot_variance_pair(
     layers: Mapping[str, MapLayers], path: Path, width_in: float = 10.0, dpi: int = 70
 ) -> Path:
     """The paper's Figure 10: the predictive variance of each method ``{name: layers}`` side by side, each
-    with its own colour bar."""
+    with its own colour bar (logarithmic, so that low variances of well-observed areas stay apart)."""
+    from matplotlib.colors import LogNorm
+
     first = next(iter(layers.values()))
     h, w = first.shape
     n = len(layers)
     fig, axes = plt.subplots(1, n, figsize=(width_in, width_in / n * h / w + 0.8), squeeze=False)
     for k, (name, lay) in enumerate(layers.items()):
         ax = axes[0, k]
-        im = ax.imshow(lay.variance, origin="lower", extent=_extent(lay), cmap="viridis")
+        v = np.asarray(lay.variance, dtype=np.float64)
+        norm = LogNorm(vmin=max(float(np.percentile(v, 0.5)), 1e-4), vmax=max(float(v.max()), 2e-4))
+        im = ax.imshow(
+            np.maximum(v, norm.vmin), origin="lower", extent=_extent(lay), cmap="viridis", norm=norm
+        )
         fig.colorbar(im, ax=ax, fraction=0.03, pad=0.02)
-        ax.set_title(f"({'abcdefgh'[k]}) {name}: predictive variance", fontsize=9)
+        ax.set_title(f"({'abcdefgh'[k]}) {name}: predictive variance (log scale)", fontsize=9)
         ax.tick_params(labelsize=7)
     fig.tight_layout()
     return _finish(fig, path, dpi)
