@@ -122,7 +122,7 @@ def street_figures(out: Path, seed: int = 0) -> dict[str, Any]:
 REGIONS = ("platform I", "platform II only", "neither")
 
 
-def two_platform_result(seed: int = 0, every: int = 1) -> dict[str, Any]:
+def two_platform_result(seed: int = 0, every: int = 1, config_path: Path | None = None) -> dict[str, Any]:
     """GPPOL, GPFOL and the grid on the ``two-platform`` world (the paper's dataset II, section 4.1.2), laser
     noise per platform from the simulator (the ground truth's ``sources``), exact poses.
 
@@ -130,12 +130,13 @@ def two_platform_result(seed: int = 0, every: int = 1) -> dict[str, Any]:
     section 6), ``auc_observed`` over the cells some beam observed, and by region ``REGIONS`` (cells observed
     by platform I; by platform II only; by neither), with the median variance of the ground-truth FREE cells
     of each region (``median_variance``). Returns also the layers (probability, mean, variance) of each
-    mapper on that raster, the tracks of both platforms and the parameters."""
+    mapper on that raster, the tracks of both platforms and the parameters. ``config_path``: a configuration
+    file (default: the built-in defaults), e.g. ``mapping/configs/gppol_nn.yaml``."""
     from datasets.simulation import make_world
 
     run = make_world("two-platform", seed)
     rec, gt = run.recording, run.ground_truth
-    cfg = ground_truth_noise(load_config().mapping, gt)
+    cfg = ground_truth_noise(load_config(config_path).mapping, gt)
     poses = reference_base_poses(rec, Path("two-platform"))
     beams = make_beams(rec, poses, np.arange(len(rec.scans)), cfg)
     occ = np.asarray(gt.occupancy).astype(bool)

@@ -154,3 +154,18 @@ def test_intel_perturbed_poses_gppol_beats_gpfol(intel) -> None:
     row = out["per_seed"][0]
     assert row["auc_gppol"] > row["auc_gpfol"] + 0.01  # measured 0.955 vs 0.925 (default training)
     assert row["auc_gpfol"] > row["auc_grid"]
+
+
+@pytest.mark.slow
+def test_two_platform_world_gppol_with_the_papers_nn_kernel_beats_gpfol_on_every_cell() -> None:
+    """The paper's dataset II scored as SPEC section 6 says (every cell; here every 3rd row and column), with
+    the paper's GPPOL kernel (NN, eq. 7; sigma-point rule: mapping/configs/gppol_nn.yaml): GPPOL above GPFOL
+    above the grid. Small margin (measured 0.8928 vs 0.8919 on every cell of seed 0; seeds 1, 2: 0.8948 vs
+    0.8918, 0.8890 vs 0.8885): the 77 % never-observed cells weigh as much for both."""
+    from pipeline.mapping_figures import two_platform_result
+    from tests.conftest import REPO
+
+    r = two_platform_result(seed=0, every=3, config_path=REPO / "mapping" / "configs" / "gppol_nn.yaml")
+    auc = r["auc"]
+    assert auc["gppol"] > auc["gpfol"] > auc["grid"] + 0.1
+    assert r["auc_observed"]["gppol"] > r["auc_observed"]["gpfol"] + 0.008
