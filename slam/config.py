@@ -37,6 +37,12 @@ class OdometryConfig(BaseModel):
         0.1, ge=0, description="insert a scan into the submaps after this travel"
     )
     insert_rotation_rad: float = Field(0.1, ge=0, description="... or after this rotation")
+    normal_radius_m: float = Field(
+        0.3, gt=0, description="point normals from the scan neighbours within this radius"
+    )
+    normal_max_neighbours: int = Field(
+        2, ge=1, le=500, description="... walking at most this many beams each way from the point"
+    )
     search_window_m: float = Field(
         0.1, ge=0, description="correlative search half-window around the prediction"
     )

@@ -30,7 +30,25 @@ from numpy.typing import NDArray
 
 from slam import geometry as se2
 from slam.config import OdometryConfig
-from slam.scan_matching import PointGrid, correlative_search, refine_point_to_line, scan_normals
+from slam.scan_matching import (
+    PointGrid,
+    correlative_posterior,
+    correlative_search,
+    refine_point_to_line,
+    scan_normals,
+    thin_points,
+)
+import os
+_EXP = os.environ.get("EXP", "")
+_NS = float(os.environ.get("NS", "3"))
+_MAXW = float(os.environ.get("MAXW", "0.3"))
+_PW = float(os.environ.get("PW", "0.2"))
+_PWR = float(os.environ.get("PWR", "0.05"))
+_TV = float(os.environ.get("TV", "1"))
+_SC = float(os.environ.get("SC", "1"))
+_G = float(os.environ.get("G", "9"))
+_PT = float(os.environ.get("PT", "1.5"))
+_COV = os.environ.get("COV", "post")
 
 FloatArray = NDArray[np.float64]
 
@@ -263,8 +281,26 @@ def run_odometry(
                     else:
                         window_m = cfg.search_window_m
                         window_rad = cfg.search_window_rad + 0.3 * abs(inc[2])
+                    post = None
                     if kiss is not None:
                         start = kiss.align(pts, pred)
+                    elif _EXP:
+                        sd_xy = math.sqrt(max(np.linalg.eigvalsh(cov_pred_w[:2, :2]).max(), 0.0))
+                        sd_th = math.sqrt(cov_pred_w[2, 2])
+                        center = pred
+                        if wheel_inc is None:
+                            center = correlative_search(
+                                target, pts, pred, window_m, window_rad, cfg.search_step_rad
+                            ).pose_xytheta
+                            w_m, w_rad = _PW, _PWR
+                        else:
+                            w_m = min(max(window_m, _NS * sd_xy), _MAXW)
+                            w_rad = min(max(window_rad, _NS * sd_th), 0.3)
+                        q = pts[thin_points(pts, cfg.resolution_m * _TV)]
+                        post = correlative_posterior(
+                            target, q, center, w_m, w_rad, cfg.search_step_rad, pred, prior_info, _SC
+                        )
+                        start = post.mode_xytheta
                     else:
                         start = correlative_search(
                             target, pts, pred, window_m, window_rad, cfg.search_step_rad
@@ -281,6 +317,28 @@ def run_odometry(
                         max_iterations=0 if kiss is not None else 30,
                     )
                     pose = start if kiss is not None else al.pose_xytheta
+                    if post is not None:
+                        sigma = max(al.rms_m, cfg.min_point_sigma_m)
+                        cov_gn = np.linalg.inv(al.hessian / sigma**2 + prior_info)
+                        if _EXP == "A":
+                            pose = post.mean_xytheta
+                        elif _EXP == "B":
+                            e = pose - post.mean_xytheta
+                            e[2] = se2.wrap(e[2])
+                            if e @ np.linalg.solve(post.cov_xytheta, e) > _G:
+                                pose = post.mean_xytheta
+                        elif _EXP == "C":
+                            # keep the refinement along the posterior's well-determined directions only
+                            val, vec = np.linalg.eigh(post.cov_xytheta[:2, :2])
+                            e = pose - post.mean_xytheta
+                            e[2] = se2.wrap(e[2])
+                            exy = vec.T @ e[:2]
+                            exy[val > (_PT * cfg.resolution_m) ** 2] = 0.0
+                            pose = post.mean_xytheta.copy()
+                            pose[:2] += vec @ exy
+                            if post.cov_xytheta[2, 2] <= (_PT * cfg.search_step_rad) ** 2:
+                                pose[2] += e[2]
+                        post_cov = post.cov_xytheta
                     frac = al.inliers / pts.shape[0]
                     dev = se2.between(pred, pose)
                     accepted = (
@@ -299,6 +357,8 @@ def run_odometry(
                         else cfg.point_sigma_m
                     )
                     covs[i] = np.linalg.inv(al.hessian / sigma**2 + prior_info)
+                    if post is not None:
+                        covs[i] = post_cov if _COV == "post" else np.maximum(post_cov, covs[i]) if _COV == "max" else post_cov + covs[i]
                     status[i] = MATCHED
                 else:
                     poses[i] = pred
@@ -317,7 +377,7 @@ def run_odometry(
                 or abs(se2.wrap(poses[i, 2] - last_insert[2])) >= cfg.insert_rotation_rad
             ):
                 t0 = time.perf_counter()
-                nrm = scan_normals(pts, max_gap_m=max(0.3, 6 * cfg.resolution_m))
+                nrm = scan_normals(pts, cfg.normal_radius_m, cfg.normal_max_neighbours)
                 t_normals += time.perf_counter() - t0
                 t0 = time.perf_counter()
                 submaps.insert(poses[i], pts, nrm)
