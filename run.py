@@ -28,6 +28,15 @@ def _add_json(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout and nothing else")
 
 
+def _add_scheduler(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="render map tiles on Dask: 'local' (a local cluster) or a scheduler address tcp://HOST:PORT "
+        "(default: in this process)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python run.py", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -39,6 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="run folder (default: out/demo)")
     p.add_argument("--seed", type=int, default=0, help="simulation seed (default: 0)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
+    _add_scheduler(p)
     _add_json(p)
 
     p = sub.add_parser("run", help="full pipeline on a ROS1/ROS2 bag or a CARMEN log")
@@ -53,6 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=float, help="map cell size in metres")
     p.add_argument("--mapper", choices=["gppol", "gpfol"], help="GP with uncertain (gppol) or exact inputs")
     p.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
+    _add_scheduler(p)
     _add_json(p)
 
     p = sub.add_parser("remap", help="new maps from a run folder with other poses, without the bag")
@@ -62,7 +73,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resolution", type=float, help="map cell size in metres")
     p.add_argument("--bounds", help="XMIN,YMIN,XMAX,YMAX in metres (default: from the data)")
     p.add_argument("--out", type=Path, help="output folder (default: RUN_DIR/remap)")
+    p.add_argument(
+        "--recompute", action="store_true", help="render even when nothing changed (default: copy the map)"
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    _add_scheduler(p)
     _add_json(p)
 
     p = sub.add_parser("simulate", help="write a simulated run as a bag plus its ground-truth raster")

@@ -153,6 +153,7 @@ def write_relations(path: str | Path, relations: Relations) -> None:
     try:
         with os.fdopen(fd, "w", encoding="ascii") as f:
             f.write("\n".join(lines) + "\n")
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; this is an ordinary output file
         os.replace(tmp, path)
     except OSError as exc:
         Path(tmp).unlink(missing_ok=True)

@@ -2,9 +2,28 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class GridBaselineConfig(BaseModel):
+    """The occupancy-grid baseline (Thrun et al. 2005 inverse sensor model)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    resolution_m: float = Field(0.1, gt=0, le=100, description="cell size of the baseline grid")
+    p_occupied: float = Field(0.7, gt=0.5, lt=1, description="inverse sensor model: p(occ) at an endpoint")
+    p_free: float = Field(0.4, gt=0, lt=0.5, description="inverse sensor model: p(occ) along a beam")
+    p_clamp: float = Field(0.97, gt=0.5, lt=1, description="log-odds clamped to logit(+-p_clamp)")
+    beam_width_deg: float = Field(
+        0.0,
+        ge=0,
+        lt=180,
+        description="0: each beam is a ray; > 0: a cone of this full width (the paper widens the beams of "
+        "its sparse street data by bearing noise, section 4.1.1)",
+    )
 
 
 class MappingConfig(BaseModel):
@@ -18,3 +37,69 @@ class MappingConfig(BaseModel):
     k_free: int = Field(15, ge=1, le=200, description="free-space beam neighbours per query (paper: 15)")
     occupied_threshold: float = Field(0.65, gt=0, lt=1, description="p(occ) >= this is occupied")
     free_threshold: float = Field(0.35, gt=0, lt=1, description="p(occ) <= this is free")
+    kernel: Literal["nn", "se", "matern32", "matern52"] = Field(
+        "nn", description="covariance function: neural network (eq. 7), squared exponential, Matern 3/2, 5/2"
+    )
+    kernel_bounds: dict[str, tuple[float, float]] = Field(
+        default_factory=dict,
+        description="bounds of hyperparameters by name (e.g. sigma: [0.01, 1000]); defaults per kernel",
+    )
+    noise_var: float = Field(
+        0.1, gt=0, le=10, description="GP noise variance sigma_n^2 (fixed; the start value if learnt)"
+    )
+    learn_noise: bool = Field(False, description="learn sigma_n^2 with the kernel by eq. (9)")
+    jitter: float = Field(
+        1e-8,
+        ge=0,
+        le=1,
+        description="relative jitter added to K's diagonal when a Cholesky fails (retried x10)",
+    )
+    no_return_free_length_m: float | None = Field(
+        2.0,
+        ge=0,
+        le=1000,
+        description="free segment of a beam without return (null: the scan's range_max; 0: none). Real "
+        "lasers miss glass and dark surfaces, so a short length; a simulated laser can use range_max",
+    )
+    free_margin_m: float = Field(
+        0.1, ge=0, le=10, description="free segments of returns stop this short of the endpoint"
+    )
+    index_cell_m: float | None = Field(
+        None,
+        gt=0,
+        le=100,
+        description="cell size of the neighbour-search grids (null: from the data density)",
+    )
+    params_file: Path | None = Field(
+        None, description="learnt GP parameters (JSON) to reuse instead of training ('trained in advance')"
+    )
+    scan_min_travel_m: float = Field(
+        0.5,
+        ge=0,
+        le=100,
+        description="a run maps the scans taken after the laser moved this far (or turned "
+        "scan_min_rotation_rad) since the last mapped scan; 0 and 0 map every scan",
+    )
+    scan_min_rotation_rad: float = Field(
+        0.25, ge=0, le=7, description="see scan_min_travel_m (like GMapping's linear/angularUpdate)"
+    )
+    train_scans: int = Field(50, ge=1, description="hyperparameters are learnt from the first N scans")
+    train_problems: int = Field(64, ge=1, le=100_000, description="local neighbourhoods in the training set")
+    train_anneal_evaluations: int = Field(
+        200, ge=0, le=1_000_000, description="dual-annealing budget (likelihood evaluations; 0 skips it)"
+    )
+    train_lbfgs_iterations: int = Field(100, ge=1, le=100_000, description="L-BFGS-B iterations after it")
+    train_seed: int = Field(0, ge=0, description="seed of the training subsample and of the annealer")
+    grid: GridBaselineConfig = Field(default_factory=GridBaselineConfig)
+
+    @model_validator(mode="after")
+    def _thresholds_ordered(self) -> MappingConfig:
+        if not self.free_threshold < self.occupied_threshold:
+            raise ValueError(
+                f"free_threshold ({self.free_threshold}) must be below occupied_threshold "
+                f"({self.occupied_threshold})"
+            )
+        for name, (lo, hi) in self.kernel_bounds.items():
+            if not 0 < lo < hi:
+                raise ValueError(f"kernel_bounds.{name} must be (low, high) with 0 < low < high")
+        return self

@@ -102,20 +102,46 @@ def _report(result: dict[str, Any], args: argparse.Namespace, emit_json: EmitJso
 def cmd_demo(args: argparse.Namespace, emit_json: EmitJson) -> int:
     run_demo = entry_point("demo")
     result = run_demo(
-        out=args.out, seed=args.seed, overwrite=args.overwrite, progress=progress_for_terminal(args.quiet)
+        out=args.out,
+        seed=args.seed,
+        overwrite=args.overwrite,
+        progress=progress_for_terminal(args.quiet or args.json),
+        scheduler=args.scheduler,
     )
     return _report(result, args, emit_json, "demo")
 
 
 def cmd_run(args: argparse.Namespace, emit_json: EmitJson) -> int:
     run_pipeline = entry_point("run")
-    result = run_pipeline(args, progress=progress_for_terminal(args.quiet or args.json))
+    result = run_pipeline(
+        input_path=args.input,
+        out_dir=args.out,
+        config_path=args.config,
+        scan_topic=args.scan_topic,
+        odom_topic=args.odom_topic,
+        resolution_m=args.resolution,
+        mapper=args.mapper,
+        overwrite=args.overwrite,
+        progress=progress_for_terminal(args.quiet or args.json),
+        scheduler=args.scheduler,
+    )
     return _report(result, args, emit_json, f"run {args.input}")
 
 
 def cmd_remap(args: argparse.Namespace, emit_json: EmitJson) -> int:
     remap_run = entry_point("remap")
-    result = remap_run(args, progress=progress_for_terminal(args.quiet or args.json))
+    result = remap_run(
+        run_dir=args.run_dir,
+        poses=args.poses,
+        covariances=args.covariances,
+        resolution_m=args.resolution,
+        bounds=args.bounds,
+        out_dir=args.out,
+        overwrite=args.overwrite,
+        recompute=args.recompute,
+        progress=progress_for_terminal(args.quiet or args.json),
+        scheduler=args.scheduler,
+    )
     return _report(result, args, emit_json, f"remap {args.run_dir}")
 
 

@@ -11,6 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from datasets.config import InputConfig
 from datasets.errors import ConfigError
 from mapping.config import MappingConfig
+from pipeline.scale_config import ScaleConfig
 from slam.config import SlamConfig
 
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent / "default.yaml"
@@ -34,6 +35,7 @@ class Config(BaseModel):
     slam: SlamConfig = Field(default_factory=SlamConfig)
     mapping: MappingConfig = Field(default_factory=MappingConfig)
     export: ExportConfig = Field(default_factory=ExportConfig)
+    scale: ScaleConfig = Field(default_factory=ScaleConfig)
 
 
 def _format_validation_error(source: str, error: ValidationError) -> str:

@@ -39,6 +39,7 @@ def _atomic_write(path: Path, text: str) -> None:
     try:
         with os.fdopen(fd, "w") as f:
             f.write(text)
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; these are ordinary output files
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -136,13 +137,15 @@ class G2oGraph:
 
 def write_g2o(path: str | Path, vertices_xytheta: FloatArray, edges: list[Edge] | tuple[Edge, ...]) -> None:
     """Write ``VERTEX_SE2`` lines for (K, 3) vertices (ids 0..K-1) and ``EDGE_SE2`` lines for the between
-    edges (odometry and loop closures, with their information); priors become ``FIX`` lines."""
+    edges (odometry and loop closures, with their information); priors become ``FIX`` lines, written last
+    (GTSAM's ``readG2o`` reads the file completely only then)."""
     lines = []
+    fixed = []
     for k, (x, y, th) in enumerate(np.asarray(vertices_xytheta, dtype=np.float64).tolist()):
         lines.append(f"VERTEX_SE2 {k} {x!r} {y!r} {th!r}")
     for e in edges:
         if e.kind == "prior":
-            lines.append(f"FIX {e.key_from}")
+            fixed.append(f"FIX {e.key_from}")
             continue
         info = e.information
         info = 0.5 * (info + info.T)
@@ -152,7 +155,8 @@ def write_g2o(path: str | Path, vertices_xytheta: FloatArray, edges: list[Edge] 
             f"EDGE_SE2 {e.key_from} {e.key_to} {dx!r} {dy!r} {dth!r} "
             + " ".join(repr(float(v)) for v in upper)
         )
-    _atomic_write(Path(path), "\n".join(lines) + "\n")
+    # FIX lines last: GTSAM's readG2o stops reading edges at a FIX line that precedes them.
+    _atomic_write(Path(path), "\n".join(lines + fixed) + "\n")
 
 
 def read_g2o(path: str | Path) -> G2oGraph:
@@ -234,6 +238,7 @@ def save_covariances(
     os.close(fd)
     try:
         np.savez(tmp, stamps_ns=stamps, before=b, after=a, indices=idx, frame="world", order="x y theta")
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

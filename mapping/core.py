@@ -1,0 +1,502 @@
+"""Compiled local-GP prediction (eqs. 2-3) for many query points at once, parallel over queries.
+
+For each query ``x*`` (section 3.7): the ``k_occ`` nearest occupied endpoints (+1) and the ``k_free`` nearest
+free beam segments, each giving its point closest to ``x*`` (-1, eqs. 13-14); then a local GP on these
+``n <= k_occ + k_free`` training points, in coordinates centred on the query, solved by a float64 Cholesky
+of ``K + sigma_n^2 I`` (jitter added and the factorisation retried if it fails), and the PLS link
+``p = Phi((alpha mu + beta) / sqrt(1 + alpha^2 (sigma^2 + sigma_n^2)))`` (SPEC section 5, R&W eq. 6.42).
+
+Two paths share the same steps. The fast path, :func:`predict_batch`, solves LANES = 16 queries together
+(lane index innermost, so that LLVM vectorises the kernel blocks, the Cholesky and the solves:
+``_kernel_lanes``, ``_cholesky_lanes``, ``_forward_lanes``); the scalar path (``_kernel_blocks``,
+``_solve_local``) redoes, alone and with jitter, a query whose factorisation failed.
+
+Seams for GPPOL (issue 5): the per-query work is split into
+neighbour search (:func:`mapping.index.knn_points`, :func:`mapping.index.knn_segments`: ids, and the
+position ``t`` of each free point along its beam, from which GPPOL gets the range of the free point),
+``_training_inputs`` (training point means, centred on the query; GPPOL adds their 2x2 covariances, from the
+unscented transform, beside them), ``_kernel_lanes`` / ``_kernel_blocks`` (``K`` between training points,
+``k*`` between training points and the query, ``k**``; GPPOL swaps these for the kernels integrated over the
+training input distributions, eq. 19 / eq. 23; the test point stays deterministic) and
+``_cholesky_lanes`` + ``_forward_lanes`` / ``_solve_local`` (unchanged for GPPOL). A GPPOL driver copies
+:func:`predict_batch` and replaces the two middle steps; the PLS link is the same.
+
+Compiled code is cached on disk (``cache=True``). Numba's cache does not notice edits to compiled functions
+of OTHER modules that a cached function calls (e.g. :mod:`mapping.index` from :func:`predict_batch`): after
+editing ``mapping/index.py``, delete ``mapping/__pycache__/*.nb[ic]``.
+
+Kernel ids and packed parameters (see :meth:`mapping.kernels.Kernel.packed`):
+0 neural network (eq. 7): ``(sf2, 2 sigma_0^2, 2 sigma^2)``; 1 squared exponential: ``(sf2, 1/l^2)``;
+2 Matern 3/2: ``(sf2, sqrt(3)/l)``; 3 Matern 5/2: ``(sf2, sqrt(5)/l)``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+from mapping.index import knn_points, knn_segments
+
+KERNEL_NN = 0
+KERNEL_SE = 1
+KERNEL_MATERN32 = 2
+KERNEL_MATERN52 = 3
+
+SQRT2 = math.sqrt(2.0)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _phi(z):
+    """Standard normal CDF."""
+    return 0.5 * math.erfc(-z / SQRT2)
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _kernel_blocks(kid, kp, X, n, K, ks, s):
+    """Fill K[:n, :n] (upper and lower) and ks[:n] for training inputs X[:n] (centred on the query, which is
+    the origin) and return k(x*, x*). ``s`` (n,) is scratch."""
+    sf2 = kp[0]
+    if kid == KERNEL_NN:
+        c0 = kp[1]
+        c1 = kp[2]
+        sq = 1.0 / math.sqrt(1.0 + c0)
+        for i in range(n):
+            s[i] = 1.0 / math.sqrt(1.0 + c0 + c1 * (X[i, 0] * X[i, 0] + X[i, 1] * X[i, 1]))
+        for i in range(n):
+            xi = X[i, 0]
+            yi = X[i, 1]
+            si = s[i]
+            for j in range(i + 1):
+                a = (c0 + c1 * (xi * X[j, 0] + yi * X[j, 1])) * si * s[j]
+                v = sf2 * math.asin(min(max(a, -1.0), 1.0))
+                K[i, j] = v
+                K[j, i] = v
+            ks[i] = sf2 * math.asin(c0 * si * sq)
+        return sf2 * math.asin(c0 / (1.0 + c0))
+    # stationary kernels: functions of the distance only
+    for i in range(n):
+        xi = X[i, 0]
+        yi = X[i, 1]
+        for j in range(i + 1):
+            dx = xi - X[j, 0]
+            dy = yi - X[j, 1]
+            v = sf2 * _stationary(kid, kp[1], dx * dx + dy * dy)
+            K[i, j] = v
+            K[j, i] = v
+        ks[i] = sf2 * _stationary(kid, kp[1], xi * xi + yi * yi)
+    return sf2
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True, inline="always")
+def _stationary(kid, c, r2):
+    if kid == KERNEL_SE:
+        return math.exp(-0.5 * c * r2)
+    u = c * math.sqrt(r2)
+    if kid == KERNEL_MATERN32:
+        return (1.0 + u) * math.exp(-u)
+    return (1.0 + u + u * u / 3.0) * math.exp(-u)
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _cholesky_inplace(A, n, diag):
+    """Lower Cholesky factor of the symmetric A[:n, :n] written into its lower triangle (row-major,
+    Cholesky-Banachiewicz); the upper triangle keeps A, ``diag`` (n,) must hold A's diagonal so that a failed
+    factorisation can be retried. Returns False if a pivot is not positive."""
+    for i in range(n):
+        for j in range(i + 1):
+            acc = A[j, i] if j < i else diag[i]
+            for m in range(j):
+                acc -= A[i, m] * A[j, m]
+            if i == j:
+                if acc <= 0.0 or not math.isfinite(acc):
+                    return False
+                A[i, i] = math.sqrt(acc)
+            else:
+                A[i, j] = acc / A[j, j]
+    return True
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _forward(L, n, b, out):
+    """Solve L out = b for the lower-triangular L[:n, :n]."""
+    for i in range(n):
+        acc = b[i]
+        for m in range(i):
+            acc -= L[i, m] * out[m]
+        out[i] = acc / L[i, i]
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _solve_local(K, ks, kss, y, n, noise_var, jitter, diag, v, w):
+    """Mean and variance of the local GP (eqs. 2-3) from K[:n,:n] (noise-free), ks, kss and labels y.
+
+    Adds ``noise_var`` to the diagonal; if the Cholesky fails, retries with jitter 1x, 10x, ... 1e6x of
+    ``jitter`` times the mean diagonal. Returns (mean, variance) with the variance clipped to [0, kss]
+    (the clip only acts on round-off: in exact arithmetic 0 <= var <= kss)."""
+    if n == 0:
+        return 0.0, kss
+    mean_diag = 0.0
+    for i in range(n):
+        mean_diag += K[i, i]
+    mean_diag /= n
+    extra = 0.0
+    ok = False
+    for attempt in range(8):
+        for i in range(n):
+            diag[i] = K[i, i] + noise_var + extra
+        if _cholesky_inplace(K, n, diag):
+            ok = True
+            break
+        extra = jitter * max(mean_diag, 1e-12) * 10.0**attempt
+    if not ok:
+        return 0.0, kss
+    _forward(K, n, ks, v)
+    _forward(K, n, y, w)
+    mu = 0.0
+    q = 0.0
+    for i in range(n):
+        mu += v[i] * w[i]
+        q += v[i] * v[i]
+    var = kss - q
+    if var < 0.0:
+        var = 0.0
+    elif var > kss:
+        var = kss
+    return mu, var
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y):
+    """Training inputs centred on the query: occupied endpoints (+1) then free points s + t d (-1)."""
+    for i in range(no):
+        j = ido[i]
+        X[i, 0] = pts[j, 0] - qx
+        X[i, 1] = pts[j, 1] - qy
+        y[i] = 1.0
+    for i in range(nf):
+        j = idf[i]
+        X[no + i, 0] = seg[j, 0] + tf[i] * seg[j, 2] - qx
+        X[no + i, 1] = seg[j, 1] + tf[i] * seg[j, 3] - qy
+        y[no + i] = -1.0
+    return no + nf
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The fast path: LANES queries solved together, the lane index innermost, so that the kernel blocks, the
+# Cholesky factorisation and the solves run as SIMD instructions over 4 queries at once.
+
+LANES = 16
+
+# fdlibm's rational approximation of asin on [0, 0.5] (and, through asin(x) = pi/2 - 2 asin(sqrt((1-x)/2)),
+# on [0.5, 1]); written without branches so that loops over lanes vectorise.
+_PS0 = 1.66666666666666657415e-01
+_PS1 = -3.25565818622400915405e-01
+_PS2 = 2.01212532134862925881e-01
+_PS3 = -4.00555345006794114027e-02
+_PS4 = 7.91534994289814532176e-04
+_PS5 = 3.47933107596021167570e-05
+_QS1 = -2.40339491173441421878e00
+_QS2 = 2.02094576023350569471e00
+_QS3 = -6.88283971605453293030e-01
+_QS4 = 7.70381505559019352791e-02
+_PIO2 = 1.57079632679489655800e00
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True, inline="always")
+def asin_fast(x):
+    """asin(x) for x in [-1, 1] without branches (absolute error ~2e-16, tested against numpy).
+
+    With z = |x| and t = min(z^2, (1 - z)/2), u = sqrt(t) is z on [0, 1/2] and sqrt((1 - z)/2) above, where
+    asin(z) = pi/2 - 2 asin(u); ``big`` (0 or 1) blends the two branches."""
+    z = abs(x)
+    t = min(z * z, 0.5 * (1.0 - z))
+    p = t * (_PS0 + t * (_PS1 + t * (_PS2 + t * (_PS3 + t * (_PS4 + t * _PS5)))))
+    q = 1.0 + t * (_QS1 + t * (_QS2 + t * (_QS3 + t * _QS4)))
+    u = math.sqrt(t)
+    a = u + u * (p / q)
+    big = 0.5 + 0.5 * math.copysign(1.0, z - 0.5)
+    return math.copysign(a + big * (_PIO2 - 3.0 * a), x)
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _kernel_lanes(kid, kp, XL, mask, n, K, ks, s):
+    """Lower triangle of K[:n, :n, lane] (noise-free, pads zeroed) and ks[:n, lane] for LANES local problems
+    with inputs XL (n, 2, LANES) centred on their queries; ``mask`` (n, LANES) is 1 for real points, 0 for
+    pads. ``s`` (n, LANES) is scratch."""
+    nlanes = XL.shape[2]  # a run-time trip count: LLVM vectorises the lane loops instead of unrolling them
+    sf2 = kp[0]
+    if kid == KERNEL_NN:
+        c0 = kp[1]
+        c1 = kp[2]
+        sq = 1.0 / math.sqrt(1.0 + c0)
+        for i in range(n):
+            for lane in range(nlanes):
+                x = XL[i, 0, lane]
+                y = XL[i, 1, lane]
+                s[i, lane] = 1.0 / math.sqrt(1.0 + c0 + c1 * (x * x + y * y))
+        for i in range(n):
+            for j in range(i + 1):
+                for lane in range(nlanes):
+                    a = (c0 + c1 * (XL[i, 0, lane] * XL[j, 0, lane] + XL[i, 1, lane] * XL[j, 1, lane])) * (
+                        s[i, lane] * s[j, lane]
+                    )
+                    a = min(max(a, -1.0), 1.0)
+                    K[i, j, lane] = sf2 * asin_fast(a) * (mask[i, lane] * mask[j, lane])
+            for lane in range(nlanes):
+                ks[i, lane] = sf2 * asin_fast(c0 * s[i, lane] * sq) * mask[i, lane]
+        return
+    for i in range(n):
+        for j in range(i + 1):
+            for lane in range(nlanes):
+                dx = XL[i, 0, lane] - XL[j, 0, lane]
+                dy = XL[i, 1, lane] - XL[j, 1, lane]
+                K[i, j, lane] = (
+                    sf2 * _stationary(kid, kp[1], dx * dx + dy * dy) * (mask[i, lane] * mask[j, lane])
+                )
+        for lane in range(nlanes):
+            x = XL[i, 0, lane]
+            y = XL[i, 1, lane]
+            ks[i, lane] = sf2 * _stationary(kid, kp[1], x * x + y * y) * mask[i, lane]
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _cholesky_lanes(K, n, invd, acc, ok):
+    """In-place lower Cholesky of LANES matrices K[:n, :n, lane] (lower triangles); ``invd`` (n, LANES)
+    receives 1 / L_ii. ``ok[lane]`` is set False where a pivot is not positive (that lane is garbage)."""
+    nlanes = K.shape[2]
+    for i in range(n):
+        for j in range(i + 1):
+            for lane in range(nlanes):
+                acc[lane] = K[i, j, lane]
+            for m in range(j):
+                for lane in range(nlanes):
+                    acc[lane] -= K[i, m, lane] * K[j, m, lane]
+            if i == j:
+                for lane in range(nlanes):
+                    v = acc[lane]
+                    bad = not (v > 0.0)
+                    ok[lane] = ok[lane] and not bad
+                    d = math.sqrt(v if not bad else 1.0)
+                    K[i, i, lane] = d
+                    invd[i, lane] = 1.0 / d
+            else:
+                for lane in range(nlanes):
+                    K[i, j, lane] = acc[lane] * invd[j, lane]
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _forward_lanes(K, n, invd, b, out):
+    """Solve L out[:, lane] = b[:, lane] for the LANES lower factors in K."""
+    nlanes = K.shape[2]
+    for i in range(n):
+        for lane in range(nlanes):
+            out[i, lane] = b[i, lane]
+        for m in range(i):
+            for lane in range(nlanes):
+                out[i, lane] -= K[i, m, lane] * out[m, lane]
+        for lane in range(nlanes):
+            out[i, lane] *= invd[i, lane]
+
+
+@nb.njit(cache=True, error_model="numpy", parallel=True)
+def predict_batch(
+    queries,
+    pts,
+    p_geom,
+    p_start,
+    seg,
+    ecopy,
+    s_geom,
+    s_start,
+    s_items,
+    k_occ,
+    k_free,
+    kid,
+    kp,
+    noise_var,
+    jitter,
+    alpha,
+    beta,
+    chunk,
+    out_mean,
+    out_var,
+    out_prob,
+):
+    """GPFOL prediction at (Q, 2) ``queries``: writes mean (eq. 2), latent variance (eq. 3) and p(occ).
+
+    ``pts`` (H, 2): occupied endpoints in cell order; ``seg`` (M, 5): free segments (start, direction,
+    1/|d|^2) and ``ecopy`` their float32 copies per index entry; ``*_geom`` = (origin x, origin y, cell, nx,
+    ny, most items in a cell), ``*_start`` and ``s_items`` of their grid indexes (see :mod:`mapping.index`).
+    Chunks of ``chunk`` queries run in parallel (scratch allocated once per chunk); inside a chunk, LANES
+    queries are solved together. A lane whose Cholesky fails is redone alone with jitter (``_solve_local``).
+    """
+    nq = queries.shape[0]
+    nchunks = (nq + chunk - 1) // chunk
+    nmax = k_occ + k_free
+    kss = _prior_var(kid, kp)
+    for c in nb.prange(nchunks):
+        d2o = np.empty(max(k_occ, 1))
+        ido = np.empty(max(k_occ, 1), np.int64)
+        to = np.empty(max(k_occ, 1))
+        d2f = np.empty(max(k_free, 1))
+        idf = np.empty(max(k_free, 1), np.int64)
+        tf = np.empty(max(k_free, 1))
+        X = np.empty((nmax, 2))
+        y = np.empty(nmax)
+        XL = np.zeros((nmax, 2, LANES))
+        yL = np.zeros((nmax, LANES))
+        mask = np.zeros((nmax, LANES))
+        KL = np.empty((nmax, nmax, LANES))
+        ksL = np.empty((nmax, LANES))
+        sL = np.empty((nmax, LANES))
+        invd = np.empty((nmax, LANES))
+        vL = np.empty((nmax, LANES))
+        wL = np.empty((nmax, LANES))
+        acc = np.empty(LANES)
+        ok = np.empty(LANES, np.bool_)
+        counts = np.zeros(LANES, np.int64)
+        warm_o = np.empty(max(k_occ, 1), np.int64)
+        warm_f = np.empty(max(k_free, 1), np.int64)
+        sbuf = np.empty(max(int(s_geom[5]), 1), np.float32)
+        pbuf = np.empty(max(int(p_geom[5]), 1))
+        n_warm_o = 0
+        n_warm_f = 0
+        K = np.empty((nmax, nmax))
+        ks = np.empty(nmax)
+        s = np.empty(nmax)
+        diag = np.empty(nmax)
+        v = np.empty(nmax)
+        w = np.empty(nmax)
+        lo = c * chunk
+        hi = min(lo + chunk, nq)
+        for base in range(lo, hi, LANES):
+            nl = min(LANES, hi - base)
+            nfill = 0
+            for lane in range(LANES):
+                counts[lane] = 0
+                if lane >= nl:
+                    continue
+                q = base + lane
+                qx = queries[q, 0]
+                qy = queries[q, 1]
+                no = knn_points(
+                    qx, qy, pts, p_geom[0], p_geom[1], p_geom[2], int(p_geom[3]), int(p_geom[4]),
+                    p_start, k_occ, d2o, ido, to, warm_o, n_warm_o, pbuf,
+                )  # fmt: skip
+                nf = knn_segments(
+                    qx, qy, seg, ecopy, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]), int(s_geom[4]),
+                    s_start, s_items, k_free, d2f, idf, tf, warm_f, n_warm_f, sbuf,
+                )  # fmt: skip
+                # the next query is usually close by: its search starts from these neighbours
+                for i in range(no):
+                    warm_o[i] = ido[i]
+                for i in range(nf):
+                    warm_f[i] = idf[i]
+                n_warm_o = no
+                n_warm_f = nf
+                n = _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y)
+                counts[lane] = n
+                nfill = max(nfill, n)
+                for i in range(n):
+                    XL[i, 0, lane] = X[i, 0]
+                    XL[i, 1, lane] = X[i, 1]
+                    yL[i, lane] = y[i]
+                    mask[i, lane] = 1.0
+            if nfill == 0:
+                for lane in range(nl):
+                    out_mean[base + lane] = 0.0
+                    out_var[base + lane] = kss
+                    out_prob[base + lane] = _phi(beta / math.sqrt(1.0 + alpha * alpha * (kss + noise_var)))
+                continue
+            for lane in range(LANES):  # pads: zero inputs and labels, identity rows in K
+                for i in range(counts[lane], nfill):
+                    XL[i, 0, lane] = 0.0
+                    XL[i, 1, lane] = 0.0
+                    yL[i, lane] = 0.0
+                    mask[i, lane] = 0.0
+            _kernel_lanes(kid, kp, XL, mask, nfill, KL, ksL, sL)
+            for i in range(nfill):
+                for lane in range(LANES):
+                    KL[i, i, lane] += noise_var * mask[i, lane] + (1.0 - mask[i, lane])
+            for lane in range(LANES):
+                ok[lane] = True
+            _cholesky_lanes(KL, nfill, invd, acc, ok)
+            _forward_lanes(KL, nfill, invd, ksL, vL)
+            _forward_lanes(KL, nfill, invd, yL, wL)
+            for lane in range(nl):
+                q = base + lane
+                if ok[lane]:
+                    mu = 0.0
+                    qq = 0.0
+                    for i in range(nfill):
+                        mu += vL[i, lane] * wL[i, lane]
+                        qq += vL[i, lane] * vL[i, lane]
+                    var = min(max(kss - qq, 0.0), kss)
+                else:  # rare: redo this query alone, with jitter retries
+                    n = counts[lane]
+                    for i in range(n):
+                        X[i, 0] = XL[i, 0, lane]
+                        X[i, 1] = XL[i, 1, lane]
+                        y[i] = yL[i, lane]
+                    kss1 = _kernel_blocks(kid, kp, X, n, K, ks, s)
+                    mu, var = _solve_local(K, ks, kss1, y, n, noise_var, jitter, diag, v, w)
+                out_mean[q] = mu
+                out_var[q] = var
+                out_prob[q] = _phi((alpha * mu + beta) / math.sqrt(1.0 + alpha * alpha * (var + noise_var)))
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _prior_var(kid, kp):
+    """k(x*, x*) in query-centred coordinates."""
+    if kid == KERNEL_NN:
+        return kp[0] * math.asin(kp[1] / (1.0 + kp[1]))
+    return kp[0]
+
+
+@nb.njit(cache=True, error_model="numpy", parallel=True)
+def gather_batch(
+    queries, pts, p_geom, p_start, seg, ecopy, s_geom, s_start, s_items, k_occ, k_free, out_occ, out_free,
+    out_t,
+):  # fmt: skip
+    """Neighbour ids of (Q, 2) queries: ``out_occ`` (Q, k_occ) endpoint ids, ``out_free`` (Q, k_free) segment
+    ids and ``out_t`` (Q, k_free) positions of the free points along them; -1 pads missing neighbours.
+    Same search as :func:`predict_batch` (chunks of 256 in parallel, each search warm-started from the
+    previous query's neighbours), so that timing it isolates the neighbour search."""
+    nq = queries.shape[0]
+    chunk = 256
+    nchunks = (nq + chunk - 1) // chunk
+    for c in nb.prange(nchunks):
+        d2o = np.empty(max(k_occ, 1))
+        to = np.empty(max(k_occ, 1))
+        ido = np.empty(max(k_occ, 1), np.int64)
+        d2f = np.empty(max(k_free, 1))
+        idf = np.empty(max(k_free, 1), np.int64)
+        tf = np.empty(max(k_free, 1))
+        warm_o = np.empty(max(k_occ, 1), np.int64)
+        warm_f = np.empty(max(k_free, 1), np.int64)
+        sbuf = np.empty(max(int(s_geom[5]), 1), np.float32)
+        pbuf = np.empty(max(int(p_geom[5]), 1))
+        no = 0
+        nf = 0
+        for q in range(c * chunk, min((c + 1) * chunk, nq)):
+            for i in range(no):
+                warm_o[i] = ido[i]
+            for i in range(nf):
+                warm_f[i] = idf[i]
+            qx = queries[q, 0]
+            qy = queries[q, 1]
+            no = knn_points(
+                qx, qy, pts, p_geom[0], p_geom[1], p_geom[2], int(p_geom[3]), int(p_geom[4]),
+                p_start, k_occ, d2o, ido, to, warm_o, no, pbuf,
+            )  # fmt: skip
+            nf = knn_segments(
+                qx, qy, seg, ecopy, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]), int(s_geom[4]),
+                s_start, s_items, k_free, d2f, idf, tf, warm_f, nf, sbuf,
+            )  # fmt: skip
+            for i in range(k_occ):
+                out_occ[q, i] = ido[i] if i < no else -1
+            for i in range(k_free):
+                out_free[q, i] = idf[i] if i < nf else -1
+                out_t[q, i] = tf[i] if i < nf else 0.0

@@ -1,0 +1,165 @@
+"""The GP occupancy map (GPFOL, paper section 3.5, Algorithm 1): query anywhere, render any grid.
+
+Rendered maps are :class:`mapping.exports.MapLayers` (raster convention of that module: row 0 at the lowest
+y, ``origin_xy_m`` the lower-left corner of cell (0, 0)).
+
+The map holds the beams (indexed) and the learnt :class:`~mapping.train.GPParams`; nothing is fitted per
+rendering, so a coarse map and a fine map of any bounds come from the same object ("anytime": coarse first,
+then fine, see :meth:`GPOccupancyMap.render_anytime`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapping.beams import Beams
+from mapping.core import predict_batch
+from mapping.exports import MapLayers
+from mapping.neighbours import BeamIndex
+from mapping.train import GPParams
+
+FloatArray = NDArray[np.float64]
+
+OCCUPIED = 1
+FREE = 0
+UNSURE = -1
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Per query point (Q,): GP mean (eq. 2), latent variance (eq. 3) and p(occ) (PLS link)."""
+
+    mean: FloatArray
+    variance: FloatArray
+    probability: FloatArray
+
+
+def classify(probability: NDArray, occupied_threshold: float = 0.65, free_threshold: float = 0.35) -> NDArray:
+    """Occupied (1) where p >= ``occupied_threshold``, free (0) where p <= ``free_threshold``, unsure (-1)
+    between (paper Fig. 6: 0.65 / 0.35)."""
+    if not 0 < free_threshold < occupied_threshold < 1:
+        raise ValueError(f"need 0 < free ({free_threshold}) < occupied ({occupied_threshold}) < 1")
+    p = np.asarray(probability)
+    out = np.full(p.shape, UNSURE, dtype=np.int8)
+    out[p >= occupied_threshold] = OCCUPIED
+    out[p <= free_threshold] = FREE
+    return out
+
+
+def grid_centres(
+    bounds_xy_m: tuple[float, float, float, float], resolution_m: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Cell centres of a grid covering ``(xmin, ymin, xmax, ymax)``: (H*W, 2) row-major points, the origin
+    (lower-left corner) and the shape (H, W) as an int array."""
+    x0, y0, x1, y1 = bounds_xy_m
+    if not (x1 > x0 and y1 > y0 and resolution_m > 0):
+        raise ValueError(f"bad map bounds {bounds_xy_m} or resolution {resolution_m}")
+    w = max(1, math.ceil((x1 - x0) / resolution_m - 1e-9))
+    h = max(1, math.ceil((y1 - y0) / resolution_m - 1e-9))
+    xs = x0 + (np.arange(w) + 0.5) * resolution_m
+    ys = y0 + (np.arange(h) + 0.5) * resolution_m
+    gx, gy = np.meshgrid(xs, ys)
+    pts = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    return pts, np.array([x0, y0]), np.array([h, w])
+
+
+class GPOccupancyMap:
+    """GPFOL map over ``beams`` with learnt ``params``; ``k_occ`` + ``k_free`` neighbours per query."""
+
+    def __init__(
+        self,
+        beams: Beams,
+        params: GPParams,
+        k_occ: int = 15,
+        k_free: int = 15,
+        jitter: float = 1e-8,
+        index_cell_m: float | None = None,
+        chunk: int = 256,
+    ) -> None:
+        self.beams = beams
+        self.params = params
+        self.k_occ = int(k_occ)
+        self.k_free = int(k_free)
+        self.jitter = float(jitter)
+        self.chunk = int(chunk)
+        t0 = time.perf_counter()
+        self.index = BeamIndex.build(beams, index_cell_m, index_cell_m)
+        self.index_seconds = time.perf_counter() - t0
+        self.last_render_seconds = 0.0
+
+    def bounds_xy_m(self, margin_m: float = 1.0) -> tuple[float, float, float, float]:
+        """Bounds of the occupied endpoints and laser origins, grown by ``margin_m``."""
+        b = self.beams
+        pts = np.concatenate([b.origins_xy_m, b.hit_xy_m])
+        lo = pts.min(axis=0) - margin_m
+        hi = pts.max(axis=0) + margin_m
+        return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+    def query(self, points_xy_m: FloatArray, sort: bool = True) -> Prediction:
+        """Mean, variance and p(occ) at (Q, 2) points. ``sort`` processes them in index-cell order (faster
+        for scattered points; results come back in the input order)."""
+        pts = np.ascontiguousarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+        order = None
+        if sort and pts.shape[0] > 1:
+            idx = self.index.segment_index
+            cell = np.floor((pts - idx.origin_xy_m) / idx.cell_m).astype(np.int64)
+            order = np.lexsort((cell[:, 1], cell[:, 0]))
+            pts = np.ascontiguousarray(pts[order])
+        n = pts.shape[0]
+        mean, var, prob = np.empty(n), np.empty(n), np.empty(n)
+        kid, kp = self.params.kernel.packed()
+        predict_batch(
+            pts,
+            *self.index.core_args(),
+            self.k_occ,
+            self.k_free,
+            kid,
+            kp,
+            self.params.noise_var,
+            self.jitter,
+            self.params.alpha,
+            self.params.beta,
+            self.chunk,
+            mean,
+            var,
+            prob,
+        )
+        if order is not None:
+            inv = np.empty_like(order)
+            inv[order] = np.arange(n)
+            mean, var, prob = mean[inv], var[inv], prob[inv]
+        return Prediction(mean, var, prob)
+
+    def render(
+        self, bounds_xy_m: tuple[float, float, float, float] | None = None, resolution_m: float = 0.1
+    ) -> MapLayers:
+        """Probability, mean and variance on a grid of ``resolution_m`` over ``bounds_xy_m`` (default: the
+        data bounds); any resolution and bounds, no retraining."""
+        bounds = bounds_xy_m or self.bounds_xy_m()
+        pts, origin, (h, w) = grid_centres(bounds, resolution_m)
+        t0 = time.perf_counter()
+        pred = self.query(pts, sort=False)
+        seconds = time.perf_counter() - t0
+        self.last_render_seconds = seconds
+        return MapLayers(
+            probability=pred.probability.reshape(h, w).astype(np.float32),
+            mean=pred.mean.reshape(h, w).astype(np.float32),
+            variance=pred.variance.reshape(h, w).astype(np.float32),
+            resolution_m=float(resolution_m),
+            origin_xy_m=(float(origin[0]), float(origin[1])),
+        )
+
+    def render_anytime(
+        self,
+        bounds_xy_m: tuple[float, float, float, float] | None = None,
+        resolutions_m: Sequence[float] = (1.0, 0.5, 0.2, 0.1),
+    ) -> Iterator[MapLayers]:
+        """Maps from coarse to fine: a caller may stop after any of them."""
+        for res in sorted(resolutions_m, reverse=True):
+            yield self.render(bounds_xy_m, res)

@@ -1,0 +1,56 @@
+"""Map metrics: the ROC curve and the area under it (paper section 4.1.1, Table 1)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import rankdata
+
+FloatArray = NDArray[np.float64]
+
+
+def _check(scores: NDArray, labels: NDArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    s = np.asarray(scores, dtype=np.float64).ravel()
+    y = np.asarray(labels).ravel().astype(bool)
+    if s.shape != y.shape:
+        raise ValueError(f"{s.shape[0]} scores but {y.shape[0]} labels")
+    if not np.all(np.isfinite(s)):
+        raise ValueError("scores must be finite")
+    if y.all() or not y.any():
+        raise ValueError("ROC needs both positive and negative labels")
+    return s, y
+
+
+def roc_auc(scores: NDArray, labels: NDArray) -> float:
+    """Area under the ROC curve of ``scores`` (higher = more likely positive) for boolean ``labels``:
+    the probability that a random positive scores above a random negative, ties counting one half
+    (Mann-Whitney U / (n_pos n_neg), computed from average ranks in O(n log n))."""
+    s, y = _check(scores, labels)
+    ranks = rankdata(s)  # average ranks for ties
+    n_pos = int(y.sum())
+    n_neg = y.size - n_pos
+    u = ranks[y].sum() - n_pos * (n_pos + 1) / 2.0
+    return float(u / (n_pos * n_neg))
+
+
+def roc_curve(scores: NDArray, labels: NDArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """False- and true-positive rates at every distinct threshold (from +inf down), with the thresholds.
+
+    Returns ``fpr``, ``tpr`` (both start at 0 and end at 1) and ``thresholds`` (``score >= threshold`` is
+    called positive). The trapezoidal area under (fpr, tpr) equals :func:`roc_auc`."""
+    s, y = _check(scores, labels)
+    order = np.argsort(-s, kind="stable")
+    s, y = s[order], y[order]
+    last = np.r_[np.flatnonzero(np.diff(s)), s.size - 1]  # last index of every distinct score
+    tp = np.cumsum(y)[last]
+    fp = (last + 1) - tp
+    tpr = np.r_[0.0, tp / y.sum()]
+    fpr = np.r_[0.0, fp / (~y).sum()]
+    thresholds = np.r_[np.inf, s[last]]
+    return fpr, tpr, thresholds
+
+
+def fpr_at_tpr(fpr: FloatArray, tpr: FloatArray, target_tpr: float = 0.95) -> float:
+    """False-positive rate when the true-positive rate first reaches ``target_tpr`` (paper Table 1)."""
+    i = int(np.searchsorted(tpr, target_tpr, side="left"))
+    return float(fpr[min(i, fpr.size - 1)])

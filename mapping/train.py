@@ -1,0 +1,240 @@
+"""Hyperparameter training (paper section 3.2) and the learnt-parameter file.
+
+The log marginal likelihood (eq. 9) is maximised over the kernel's log hyperparameters, first globally by
+dual annealing (the paper's simulated annealing) then locally by L-BFGS-B with the analytic gradient
+``d lml / d theta = 1/2 tr((a a^T - K^-1) dK/d theta)``, ``a = K^-1 y``.
+
+The data are a subsample drawn from the first scans, shaped like the model that is used at prediction:
+``n_problems`` query points sampled along the beams of those scans, each with its ``k_occ`` occupied and
+``k_free`` free neighbours (the free points projected for that query, eqs. 13-14), in coordinates centred on
+the query. The objective is the sum of eq. (9) over these local problems, evaluated as one batched
+computation. Centring matters for the non-stationary NN kernel (eq. 7), whose behaviour depends on the
+distance from the coordinate origin: the map uses it in query-centred coordinates, and so does training.
+
+Then alpha, beta of the PLS link are fitted on the leave-one-out predictions of the same problems
+(eqs. 10-12, :mod:`mapping.pls`). Everything is stored in :class:`GPParams` (JSON), reusable by later runs.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import optimize
+
+from mapping.beams import Beams
+from mapping.kernels import Kernel, make_kernel
+from mapping.neighbours import BeamIndex
+from mapping.pls import fit_pls, loo_predictions
+
+FloatArray = NDArray[np.float64]
+PARAMS_FORMAT = "gpom-gp-params-1"
+
+
+class ParamsFileError(ValueError):
+    """A learnt-parameter file cannot be read (the pipeline turns it into a GpomError naming the file)."""
+
+
+@dataclass(frozen=True)
+class GPParams:
+    """Everything prediction needs besides data: kernel (with hyperparameters), noise variance, PLS link."""
+
+    kernel: Kernel
+    noise_var: float
+    alpha: float
+    beta: float
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format": PARAMS_FORMAT,
+            "kernel": self.kernel.name,
+            "hyperparameters": self.kernel.as_dict(),
+            "bounds": {k: list(b) for k, b in zip(self.kernel.names, self.kernel.bounds_values, strict=True)},
+            "noise_var": self.noise_var,
+            "pls": {"alpha": self.alpha, "beta": self.beta},
+            "info": self.info,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> GPParams:
+        try:
+            if d.get("format") != PARAMS_FORMAT:
+                raise ParamsFileError(f"not a GP parameter file (format {d.get('format')!r})")
+            kernel = make_kernel(d["kernel"], dict(d["hyperparameters"]), d.get("bounds"))
+            return cls(
+                kernel=kernel,
+                noise_var=float(d["noise_var"]),
+                alpha=float(d["pls"]["alpha"]),
+                beta=float(d["pls"]["beta"]),
+                info=dict(d.get("info", {})),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            if isinstance(exc, ParamsFileError):
+                raise
+            raise ParamsFileError(f"bad GP parameter file: {exc}") from None
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=2, default=float) + "\n")
+
+    @classmethod
+    def load(cls, path: str | Path) -> GPParams:
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ParamsFileError(f"cannot read GP parameters: {exc}") from None
+        return cls.from_dict(data)
+
+
+def sample_training_queries(beams: Beams, n: int, seed: int = 0, beyond: float = 0.15) -> FloatArray:
+    """(n, 2) query points along random beams: uniform over ``[0, 1 + beyond]`` of each beam's length (so
+    some lie just behind its endpoint) plus 5 cm of Gaussian jitter."""
+    rng = np.random.default_rng(seed)
+    if len(beams) == 0:
+        return np.zeros((0, 2))
+    b = rng.integers(0, len(beams), size=n)
+    t = rng.uniform(0.0, 1.0 + beyond, size=n)
+    t = np.where(beams.is_hit[b], t, np.minimum(t, 1.0))
+    p = beams.origins_xy_m[b] + t[:, None] * (beams.ends_xy_m[b] - beams.origins_xy_m[b])
+    return p + rng.normal(scale=0.05, size=p.shape)
+
+
+def log_marginal_likelihood(
+    kernel: Kernel,
+    X: FloatArray,
+    y: FloatArray,
+    noise_var: float,
+    eval_gradient: bool = False,
+    noise_gradient: bool = False,
+) -> float | tuple[float, FloatArray]:
+    """Sum over the local problems X (Q, n, 2), y (Q, n) of eq. (9), and its gradient w.r.t. ``kernel.theta``
+    (with ``noise_gradient``, also w.r.t. ``log noise_var``, appended).
+
+    Returns -inf (and a zero gradient) when a covariance matrix is not positive definite."""
+    n = X.shape[-2]
+    if eval_gradient:
+        K, dK = kernel(X, eval_gradient=True)
+    else:
+        K = kernel(X)
+    K = K + noise_var * np.eye(n)
+    try:
+        L = np.linalg.cholesky(K)
+    except np.linalg.LinAlgError:
+        size = kernel.theta.shape[0] + int(noise_gradient)
+        return (-np.inf, np.zeros(size)) if eval_gradient else -np.inf
+    Kinv = np.linalg.inv(K)
+    a = np.einsum("...ij,...j->...i", Kinv, y)
+    logdet = 2.0 * np.log(np.einsum("...ii->...i", L)).sum(axis=-1)
+    lml = -0.5 * np.einsum("...i,...i->...", y, a) - 0.5 * logdet - 0.5 * n * np.log(2 * np.pi)
+    total = float(lml.sum())
+    if not eval_gradient:
+        return total
+    inner = a[..., :, None] * a[..., None, :] - Kinv
+    grad = 0.5 * np.einsum("...ij,...ijp->...p", inner, dK).reshape(-1, dK.shape[-1]).sum(axis=0)
+    if noise_gradient:  # dK / d log(noise_var) = noise_var I
+        grad = np.r_[grad, 0.5 * noise_var * np.einsum("...ii->...", inner).sum()]
+    return total, grad
+
+
+def train_hyperparameters(
+    kernel: Kernel,
+    X: FloatArray,
+    y: FloatArray,
+    noise_var: float,
+    maxfun: int = 300,
+    maxiter: int = 100,
+    seed: int = 0,
+    learn_noise: bool = False,
+    noise_bounds: tuple[float, float] = (1e-4, 1.0),
+) -> tuple[Kernel, float, dict[str, Any]]:
+    """Maximise eq. (9) over the kernel's log hyperparameters (and ``log sigma_n^2`` if ``learn_noise``)
+    within their bounds: dual annealing with ``maxfun`` evaluations (0 skips it), then L-BFGS-B with the
+    analytic gradient. Returns the trained kernel, the noise variance and a summary."""
+    npts = X.shape[0] * X.shape[1]
+    p = kernel.theta.shape[0]
+    bounds = kernel.bounds
+    x0 = kernel.theta
+    if learn_noise:
+        bounds = np.vstack([bounds, np.log(np.asarray(noise_bounds, dtype=np.float64))])
+        x0 = np.r_[x0, np.log(noise_var)]
+    calls = {"anneal": 0, "lbfgs": 0}
+
+    def split(x: FloatArray) -> tuple[Kernel, float]:
+        return kernel.with_theta(x[:p]), (float(np.exp(x[p])) if learn_noise else noise_var)
+
+    def neg(x: FloatArray) -> float:
+        calls["anneal"] += 1
+        k, nv = split(x)
+        v = log_marginal_likelihood(k, X, y, nv)
+        return 1e10 if not np.isfinite(v) else -v / npts
+
+    def neg_grad(x: FloatArray) -> tuple[float, FloatArray]:
+        calls["lbfgs"] += 1
+        k, nv = split(x)
+        v, g = log_marginal_likelihood(k, X, y, nv, eval_gradient=True, noise_gradient=learn_noise)
+        if not np.isfinite(v):
+            return 1e10, np.zeros_like(x)
+        return -v / npts, -g / npts
+
+    t0 = time.perf_counter()
+    x0 = np.clip(x0, bounds[:, 0], bounds[:, 1])
+    start = x0
+    if maxfun > 0:
+        res = optimize.dual_annealing(
+            neg, bounds=bounds, maxfun=maxfun, seed=seed, no_local_search=True, x0=x0
+        )
+        start = res.x if res.fun <= neg(x0) else x0
+    res = optimize.minimize(
+        neg_grad, x0=start, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": maxiter}
+    )
+    best = res.x if np.isfinite(res.fun) else start
+    trained, nv = split(best)
+    info = {
+        "lml_per_point": float(-res.fun),
+        "anneal_evaluations": calls["anneal"],
+        "lbfgs_evaluations": calls["lbfgs"],
+        "train_seconds": time.perf_counter() - t0,
+        "points": int(npts),
+        "problems": int(X.shape[0]),
+    }
+    return trained, nv, info
+
+
+def train_gp(
+    beams: Beams,
+    kernel_name: str = "nn",
+    kernel_values: dict[str, float] | None = None,
+    kernel_bounds: dict[str, tuple[float, float]] | None = None,
+    noise_var: float = 0.1,
+    k_occ: int = 15,
+    k_free: int = 15,
+    n_scans: int = 50,
+    n_problems: int = 64,
+    maxfun: int = 300,
+    maxiter: int = 100,
+    seed: int = 0,
+    index_cell_m: float | None = None,
+    learn_noise: bool = False,
+) -> GPParams:
+    """Learn kernel hyperparameters and the PLS link from the first ``n_scans`` distinct scans of ``beams``
+    (in their scan order)."""
+    scans = np.unique(beams.scan_index)[:n_scans]
+    train_beams = beams.select_scans(scans)
+    index = BeamIndex.build(train_beams, index_cell_m, index_cell_m)
+    queries = sample_training_queries(train_beams, n_problems, seed)
+    X, y, _ = index.local_problems(queries, k_occ, k_free)
+    if X.shape[0] == 0:
+        raise ValueError(f"no training neighbourhood with {k_occ} + {k_free} neighbours in the first scans")
+    kernel = make_kernel(kernel_name, kernel_values, kernel_bounds)
+    trained, nv, info = train_hyperparameters(
+        kernel, X, y, noise_var, maxfun, maxiter, seed, learn_noise=learn_noise
+    )
+    mu, var = loo_predictions(trained, X, y, nv)
+    alpha, beta = fit_pls(mu, var, y)
+    info.update({"scans": [int(scans[0]), int(scans[-1])], "n_scans": len(scans), "seed": seed})
+    return GPParams(trained, nv, alpha, beta, info)

@@ -1,0 +1,157 @@
+"""The files of a run folder that ``remap`` reads back (SPEC section 4): the scans and the trajectories.
+
+- ``scans.npz``: every scan's ranges and angles (ragged, stored flat with offsets), stamps, range limits,
+  frame ids, sources, and the laser mounting -- everything a mapper needs, so ``remap`` never reads the bag;
+- ``trajectory/odometry.tum`` / ``optimized.tum``: base poses of every scan before / after loop closure;
+- ``trajectory/pose_graph.g2o``: the optimised graph (keyframes), loop closures included;
+- ``trajectory/covariances.npz``: world-frame (x, y, theta) keyframe marginals before / after (SPEC keys
+  ``stamps_ns``, ``before``, ``after``, ``indices``) plus the per-scan covariances ``scan_before`` /
+  ``scan_after`` (N, 3, 3) and ``scan_stamps_ns`` (N,).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from datasets.types import ScanSequence
+from pipeline.errors import PipelineError
+from slam.system import SlamResult
+from slam.trajectory_io import TrajectoryFormatError, write_g2o, write_tum
+
+TRAJECTORY_DIR = "trajectory"
+SCANS_FILE = "scans.npz"
+ODOMETRY_TUM = "odometry.tum"
+OPTIMIZED_TUM = "optimized.tum"
+POSE_GRAPH_G2O = "pose_graph.g2o"
+COVARIANCES_NPZ = "covariances.npz"
+
+
+def _savez_atomic(path: Path, **arrays: object) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".npz")
+    os.close(fd)
+    try:
+        np.savez_compressed(tmp, **arrays)
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; these are ordinary output files
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+@dataclass(frozen=True)
+class StoredScans:
+    """The scans of a run folder and the laser mounting (3,) on the base."""
+
+    scans: ScanSequence
+    laser_in_base_xytheta: NDArray[np.float64]
+
+
+def write_scans(path: Path, scans: ScanSequence, laser_in_base_xytheta: NDArray) -> Path:
+    """Write ``scans.npz``: flat float32 ranges and angles with (N+1,) offsets, and the per-scan fields."""
+    counts = scans.beam_counts()
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    _savez_atomic(
+        Path(path),
+        ranges_m=np.concatenate(scans.ranges_m) if len(scans) else np.zeros(0, np.float32),
+        angles_rad=np.concatenate(scans.angles_rad) if len(scans) else np.zeros(0, np.float32),
+        offsets=offsets,
+        stamps_ns=scans.stamps_ns,
+        range_min_m=scans.range_min_m,
+        range_max_m=scans.range_max_m,
+        frame_ids=np.asarray(scans.frame_ids, dtype=np.str_),
+        source_index=scans.source_index,
+        sources=np.asarray(scans.sources, dtype=np.str_),
+        laser_in_base_xytheta=np.asarray(laser_in_base_xytheta, dtype=np.float64),
+    )
+    return Path(path)
+
+
+def read_scans(path: Path) -> StoredScans:
+    """Read a ``scans.npz`` written by :func:`write_scans` (PipelineError if it is not one)."""
+    try:
+        with np.load(Path(path)) as z:
+            off = z["offsets"]
+            ranges = z["ranges_m"]
+            angles = z["angles_rad"]
+            n = off.shape[0] - 1
+            scans = ScanSequence(
+                [ranges[off[i] : off[i + 1]] for i in range(n)],
+                [angles[off[i] : off[i + 1]] for i in range(n)],
+                z["stamps_ns"],
+                z["range_min_m"],
+                z["range_max_m"],
+                [str(f) for f in z["frame_ids"]],
+                z["source_index"],
+                [str(s) for s in z["sources"]],
+            )
+            return StoredScans(scans, np.asarray(z["laser_in_base_xytheta"], dtype=np.float64))
+    except FileNotFoundError:
+        raise PipelineError(f"{path}: no such file (not a run folder?)") from None
+    except (OSError, KeyError, ValueError) as exc:
+        raise PipelineError(f"{path}: not a scans archive ({exc})") from None
+
+
+def write_trajectories(folder: Path, slam: SlamResult) -> dict[str, Path]:
+    """Write the four trajectory files of a run folder; returns their paths by name."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = {
+        "odometry": folder / ODOMETRY_TUM,
+        "optimized": folder / OPTIMIZED_TUM,
+        "pose_graph": folder / POSE_GRAPH_G2O,
+        "covariances": folder / COVARIANCES_NPZ,
+    }
+    write_tum(paths["odometry"], slam.stamps_ns, slam.poses_before_xytheta)
+    write_tum(paths["optimized"], slam.stamps_ns, slam.poses_after_xytheta)
+    write_g2o(paths["pose_graph"], slam.graph_vertices_xytheta, slam.graph_edges)
+    _savez_atomic(
+        paths["covariances"],
+        stamps_ns=slam.keyframe_stamps_ns,
+        before=slam.keyframe_cov_before,
+        after=slam.keyframe_cov_after,
+        indices=slam.keyframe_scans,
+        scan_stamps_ns=slam.stamps_ns,
+        scan_before=slam.cov_before_xytheta,
+        scan_after=slam.cov_after_xytheta,
+        frame="world",
+        order="x y theta",
+    )
+    return paths
+
+
+def read_scan_covariances(path: Path, which: str = "after") -> tuple[NDArray[np.int64], NDArray]:
+    """Per-scan covariances ``(stamps_ns (N,), cov (N, 3, 3))`` of a run's ``covariances.npz``.
+
+    Falls back to the keyframe marginals (``stamps_ns``, ``before`` / ``after``) when the per-scan arrays
+    are absent (e.g. a file written by another tool): each scan then takes the covariance of the latest
+    keyframe at or before it (see :func:`covariances_at`).
+    """
+    try:
+        with np.load(Path(path)) as z:
+            if f"scan_{which}" in z:
+                return np.asarray(z["scan_stamps_ns"], np.int64), np.asarray(z[f"scan_{which}"], np.float64)
+            return np.asarray(z["stamps_ns"], np.int64), np.asarray(z[which], np.float64)
+    except FileNotFoundError:
+        raise TrajectoryFormatError(f"{path}: no such file or directory") from None
+    except (OSError, KeyError, ValueError) as exc:
+        raise TrajectoryFormatError(f"{path}: not a covariance archive ({exc})") from None
+
+
+def covariances_at(
+    stamps_ns: NDArray[np.int64], cov_stamps_ns: NDArray[np.int64], cov: NDArray
+) -> NDArray[np.float64]:
+    """(N, 3, 3) covariances at ``stamps_ns``: those of the latest stamp at or before each (the first one
+    before the start). Exact when ``cov_stamps_ns`` are the scan stamps themselves."""
+    cov = np.asarray(cov, dtype=np.float64)
+    if cov.ndim != 3 or cov.shape[1:] != (3, 3) or cov.shape[0] != len(cov_stamps_ns) or len(cov) == 0:
+        raise PipelineError(f"covariances of shape {cov.shape} for {len(cov_stamps_ns)} stamps")
+    order = np.argsort(cov_stamps_ns, kind="stable")
+    s = np.asarray(cov_stamps_ns, np.int64)[order]
+    idx = np.searchsorted(s, np.asarray(stamps_ns, np.int64), side="right") - 1
+    return cov[order][np.clip(idx, 0, len(s) - 1)]

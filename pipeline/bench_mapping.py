@@ -1,0 +1,139 @@
+"""Benchmark part of the mapping stage (SPEC section 7): GPFOL query points per second on the Intel lab map
+at 0.1 m with 15 + 15 neighbours, end to end (neighbour search included), and occupancy-grid cells per
+second, with a breakdown of where the time goes. The map covers the lab (the central 99.6% of the returns
+in x and y, grown by 1 m: 311 x 309 cells); the rate over the bounds of every return (a few are seen 15 m
+away through windows, 407 x 380 cells, much of it empty) is reported beside it. Numba compilation (or
+loading it from the cache) is timed apart, by a warm-up call on a few points, and excluded from the rates.
+
+The machine may be shared: wall-clock rates are reported beside the CPU time the work took (CPU seconds
+summed over threads), whose rate ``*_per_cpu_s`` is less sensitive to other processes.
+"""
+
+from __future__ import annotations
+
+import resource
+import time
+from pathlib import Path
+from typing import Any
+
+import numba
+import numpy as np
+
+from datasets.errors import DatasetError
+from mapping.core import gather_batch
+from mapping.gpmap import GPOccupancyMap, grid_centres
+from mapping.grid import OccupancyGrid
+from pipeline.config import load_config
+from pipeline.evaluate_map import make_beams, reference_laser_poses
+from pipeline.mapping_stage import fit_params
+from pipeline.progress import Progress
+
+DATA_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+INTEL = "intel/intel.gfs.log"
+RESOLUTION_M = 0.1
+
+
+def robust_bounds(points_xy_m: np.ndarray, margin_m: float = 1.0, q: float = 0.2) -> tuple[float, ...]:
+    """Bounds of the central (100 - 2q)% of the points in x and y, grown by ``margin_m`` (drops the few
+    returns seen far away through windows)."""
+    lo = np.percentile(points_xy_m, q, axis=0) - margin_m
+    hi = np.percentile(points_xy_m, 100 - q, axis=0) + margin_m
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
+def _cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+class _Timer:
+    def __enter__(self) -> _Timer:
+        self.wall0, self.cpu0 = time.perf_counter(), _cpu_s()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.wall = time.perf_counter() - self.wall0
+        self.cpu = _cpu_s() - self.cpu0
+
+
+def bench_mapping(progress: Progress | None = None, data_dir: Path | None = None) -> dict[str, Any]:
+    """Run the mapping benchmark on the Intel lab (``intel.gfs.log``, corrected poses)."""
+    from datasets.registry import open_dataset
+
+    progress = progress or Progress()
+    path = (data_dir or DATA_DIR) / INTEL
+    if not path.is_file():
+        raise DatasetError(f"{path}: benchmark data missing (shared data folder beside the checkout)")
+    cfg = load_config().mapping
+    with progress.stage("bench mapping", total=5) as bar:
+        rec = open_dataset(path)
+        laser = reference_laser_poses(rec, path)
+        beams = make_beams(rec, laser, np.arange(len(rec.scans)), cfg)
+        with _Timer() as t_train:
+            params = fit_params(beams, cfg)
+        bar.advance()
+        with _Timer() as t_index:
+            gp = GPOccupancyMap(beams, params, cfg.k_occupied, cfg.k_free, cfg.jitter, cfg.index_cell_m)
+        bounds = robust_bounds(beams.hit_xy_m)  # the lab, as in docs/figures/mapping/intel_*.png
+        pts, _, (h, w) = grid_centres(bounds, RESOLUTION_M)
+        full_bounds = gp.bounds_xy_m()  # every return, incl. a few seen far away through windows
+        with _Timer() as t_compile:  # first call: compile or load the compiled core from numba's cache
+            gp.query(pts[:64], sort=False)
+            occ = np.empty((64, cfg.k_occupied), np.int64)
+            free = np.empty((64, cfg.k_free), np.int64)
+            tt = np.empty((64, cfg.k_free))
+            gather_batch(pts[:64], *gp.index.core_args(), cfg.k_occupied, cfg.k_free, occ, free, tt)
+        bar.advance()
+        with _Timer() as t_map:
+            layers = gp.render(bounds, RESOLUTION_M)
+        bar.advance()
+        n = pts.shape[0]
+        occ = np.empty((n, cfg.k_occupied), np.int64)
+        free = np.empty((n, cfg.k_free), np.int64)
+        tt = np.empty((n, cfg.k_free))
+        with _Timer() as t_gather:
+            gather_batch(pts, *gp.index.core_args(), cfg.k_occupied, cfg.k_free, occ, free, tt)
+        with _Timer() as t_full:
+            full = gp.render(full_bounds, RESOLUTION_M)
+        bar.advance()
+        g = cfg.grid
+        OccupancyGrid.build(beams.subset(np.arange(10)), g.resolution_m, bounds)  # warm-up (compile / cache)
+        with _Timer() as t_grid:
+            grid = OccupancyGrid.build(beams, g.resolution_m, bounds, g.p_occupied, g.p_free, g.p_clamp)
+        bar.advance()
+    grid_cells = int(np.prod(grid.log_odds.shape))
+    solve_s = max(t_map.wall - t_gather.wall, 0.0)
+    return {
+        "gpfol_queries_per_s": n / t_map.wall,
+        "grid_cells_per_s": grid.cell_updates / t_grid.wall,
+        "mapping_bench": {
+            "input": str(path),
+            "scans": len(rec.scans),
+            "beams": len(beams),
+            "occupied_points": int(beams.is_hit.sum()),
+            "map_shape": [int(h), int(w)],
+            "resolution_m": RESOLUTION_M,
+            "bounds_xy_m": list(bounds),
+            "neighbours": [cfg.k_occupied, cfg.k_free],
+            "kernel": params.kernel.name,
+            "threads": numba.get_num_threads(),
+            "gpfol_queries": n,
+            "gpfol_wall_s": t_map.wall,
+            "gpfol_cpu_s": t_map.cpu,
+            "gpfol_queries_per_cpu_s": n / max(t_map.cpu, 1e-9),
+            "neighbour_search_wall_s": t_gather.wall,
+            "gp_solve_wall_s": solve_s,
+            "neighbour_search_share": t_gather.wall / max(t_map.wall, 1e-9),
+            "compile_or_cache_load_s": t_compile.wall,
+            "index_build_s": t_index.wall,
+            "train_s": t_train.wall,
+            "grid_wall_s": t_grid.wall,
+            "grid_cell_updates": grid.cell_updates,
+            "grid_map_cells": grid_cells,
+            "grid_map_cells_per_s": grid_cells / t_grid.wall,
+            "probability_range": [float(layers.probability.min()), float(layers.probability.max())],
+            "full_bounds_xy_m": list(full_bounds),
+            "full_bounds_queries": int(np.prod(full.shape)),
+            "full_bounds_queries_per_s": float(np.prod(full.shape)) / t_full.wall,
+        },
+    }

@@ -1,0 +1,42 @@
+"""The full-pipeline part of ``bench`` (SPEC section 7): ``run`` on ``intel.clf`` end to end.
+
+One run of the whole pipeline (read, SLAM, training, maps before and after loop closure, every export) with
+the default configuration into a temporary folder: ``pipeline_intel_wall_s`` is its wall time and
+``pipeline_intel_realtime_factor`` the log's duration (2,691 s) divided by it. When the default mapper has
+not landed yet, GPFOL is used and the result says so. Timings depend on the machine's load.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from pipeline.config import load_config
+from pipeline.errors import NotYetAvailableError
+from pipeline.mapping_stage import check_mapper_available
+from pipeline.progress import Progress
+from pipeline.run import run_pipeline
+
+INTEL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "intel" / "intel.clf.bz2"
+
+
+def bench_pipeline(progress: Progress | None = None, path: str | Path = INTEL) -> dict[str, Any]:
+    """Run the full pipeline once on ``path`` (default intel.clf) and report its wall time."""
+    mapper = load_config().mapping.mapper
+    try:
+        check_mapper_available(mapper)
+    except NotYetAvailableError:
+        mapper = "gpfol"
+    with tempfile.TemporaryDirectory(prefix="gpom-bench-") as tmp:
+        t0 = time.perf_counter()
+        summary = run_pipeline(Path(path), Path(tmp) / "run", mapper=mapper, progress=progress)
+        wall = time.perf_counter() - t0
+    return {
+        "pipeline_intel_wall_s": wall,
+        "pipeline_intel_realtime_factor": summary["data_duration_s"] / wall,
+        "pipeline_intel_mapper": mapper,
+        "pipeline_intel_stages_s": summary["timings_s"],
+        "pipeline_intel_map_cells": summary["map"]["shape_hw"][0] * summary["map"]["shape_hw"][1],
+    }

@@ -1,0 +1,335 @@
+"""``run`` and ``demo``: read -> odometry -> pose graph -> marginals -> GP maps before and after loop
+closure -> the run folder of SPEC section 4.
+
+Stages and their owners: reading (:mod:`datasets`), SLAM (:func:`slam.system.run_slam`), maps
+(:mod:`pipeline.mapping_stage` over :mod:`mapping`), exports (:mod:`pipeline.map_exports`). This module
+only sequences them, times them and writes the run folder (staged, ``summary.json`` last).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from datasets.errors import DatasetError
+from datasets.registry import guess_format, open_dataset
+from datasets.types import Recording
+from mapping.beams import compose_laser_poses, select_scans_by_motion
+from mapping.exports import MapLayers
+from mapping.tiling import IncrementalMap, TileRenderer, render_serial
+from pipeline import mapping_stage as ms
+from pipeline.artifacts import SCANS_FILE, TRAJECTORY_DIR, write_scans, write_trajectories
+from pipeline.config import Config, load_config, write_config
+from pipeline.map_exports import max_variance, write_maps
+from pipeline.progress import Progress
+from pipeline.run_folder import check_output_dir, staged_run_folder, write_summary
+from pipeline.scale import engine_name, tile_engine, tiled_map
+from slam.metrics import ate_rmse
+from slam.system import SlamResult, run_slam_recording
+from slam.trajectory_io import read_tum
+
+MAP_MARGIN_M = 1.0
+
+
+class StageTimer:
+    """Wall time per stage, in the order the stages ran."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._t0 = time.perf_counter()
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t
+
+    def total(self) -> float:
+        return time.perf_counter() - self._t0
+
+
+def read_input(input_path: Path, config: Config) -> Recording:
+    """The recording, checked to hold scans (a DatasetError naming the file otherwise)."""
+    rec = open_dataset(input_path, config.input)
+    if rec.scans is None or len(rec.scans) == 0:
+        raise DatasetError(f"{input_path}: no laser scans to map")
+    return rec
+
+
+def loop_closure_segments(slam: SlamResult) -> np.ndarray:
+    """(C, 2, 2) positions of the two scans of every accepted loop closure on the optimised trajectory."""
+    p = slam.poses_after_xytheta
+    segs = [[p[c.query_scan, :2], p[c.target_scan, :2]] for c in slam.loop_closures]
+    return np.asarray(segs, dtype=np.float64).reshape(-1, 2, 2)
+
+
+def build_maps(
+    rec_scans,
+    laser_in_base: np.ndarray,
+    trajectories: dict[str, tuple[np.ndarray, np.ndarray | None]],
+    config: Config,
+    timer: StageTimer,
+    progress: Progress,
+    params: ms.GPParams | None = None,
+    bounds: ms.Bounds | None = None,
+    selected: np.ndarray | None = None,
+    renderer: TileRenderer = render_serial,
+) -> tuple[dict[str, MapLayers], dict[str, IncrementalMap], ms.GPParams, ms.Bounds]:
+    """GP maps for each named trajectory ``{name: (base poses (N,3), covariances (N,3,3) | None)}``.
+
+    The scans mapped are ``selected`` (default: selected by motion along the first trajectory,
+    :func:`select_scans`), the same for every map. Hyperparameters are learnt once (on the first
+    trajectory's beams) unless ``params`` is given; every map is rendered on the same grid (``bounds``:
+    default the union of the data bounds), tile by tile (:mod:`pipeline.scale`) with the engine ``renderer``.
+    Returns the layers, the tiled maps (:class:`mapping.tiling.IncrementalMap`, ready for incremental
+    updates), the parameters and the bounds.
+    """
+    cfg = config.mapping
+    if selected is None:
+        selected = select_scans(next(iter(trajectories.values()))[0], laser_in_base, cfg)
+    beams = {
+        name: ms.make_beams(rec_scans, poses, laser_in_base, cfg, selected)
+        for name, (poses, _) in trajectories.items()
+    }
+    if params is None:
+        with timer("train"), progress.stage("train GP", total=1) as bar:
+            params = ms.fit_params(next(iter(beams.values())), cfg)
+            bar.advance()
+    if bounds is None:
+        bounds = ms.union_bounds(*(b.bounds_xy_m(MAP_MARGIN_M) for b in beams.values()))
+    layers: dict[str, MapLayers] = {}
+    maps: dict[str, IncrementalMap] = {}
+    for name, (_, cov) in trajectories.items():
+        with timer(f"map_{name}"):
+            if renderer is render_serial:
+                # In one process the whole map at once is faster than tile by tile (one neighbour index
+                # instead of one per tile) and gives the same map (bit for bit here; to a float32 ulp on
+                # some CPUs: tests/layer_checks.py); the tiled map adopts it, ready for incremental updates.
+                with progress.stage(f"map {name}", total=1) as bar:
+                    whole = ms.build_gp_map(beams[name], params, cfg, cov).render(bounds, cfg.resolution_m)
+                    bar.advance()
+                maps[name] = tiled_map(
+                    beams[name], params, cfg, config.scale, bounds, cov, renderer, layers=whole
+                )
+            else:
+                maps[name] = tiled_map(beams[name], params, cfg, config.scale, bounds, cov, renderer)
+                with progress.stage(f"map {name}", total=len(maps[name].grid)) as bar:
+                    maps[name].render_all(on_tile=lambda _r, bar=bar: bar.advance())
+            layers[name] = maps[name].layers()
+    return layers, maps, params, bounds
+
+
+def select_scans(first_poses: np.ndarray, laser_in_base: np.ndarray, cfg) -> np.ndarray:
+    """Indices of the scans a run maps: selected by motion (:func:`select_scans_by_motion`) along the laser
+    poses of the base poses ``first_poses`` (N, 3) -- in a run, the odometry trajectory."""
+    return select_scans_by_motion(
+        compose_laser_poses(first_poses, laser_in_base), cfg.scan_min_travel_m, cfg.scan_min_rotation_rad
+    )
+
+
+def tiles_summary(maps: dict[str, IncrementalMap], config: Config) -> dict[str, Any]:
+    """``summary.json["tiles"]``: the tiling and the engine of the maps."""
+    first = next(iter(maps.values()))
+    return {
+        "tile_cells": config.scale.tile_cells,
+        "count": len(first.grid),
+        "engine": engine_name(config.scale),
+        "support_beams_mean": {k: float(np.mean(m.support_beams)) for k, m in maps.items()},
+        "tile_seconds_sum": {k: float(np.sum(m.tile_seconds)) for k, m in maps.items()},
+    }
+
+
+def run_pipeline(
+    input_path: Path,
+    out_dir: Path | None = None,
+    config_path: Path | None = None,
+    scan_topic: str | None = None,
+    odom_topic: str | None = None,
+    resolution_m: float | None = None,
+    mapper: str | None = None,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+    scheduler: str | None = None,
+) -> dict[str, Any]:
+    """The full pipeline on one recording; writes the run folder ``out_dir`` and returns its summary.
+    ``scheduler``: where map tiles are rendered (``"local"``, a Dask address; default: the configuration).
+    """
+    progress = progress or Progress()
+    timer = StageTimer()
+    input_path = Path(input_path)
+    config = load_config(
+        config_path,
+        {
+            "input": {"scan_topic": scan_topic, "odom_topic": odom_topic},
+            "mapping": {"resolution_m": resolution_m, "mapper": mapper},
+            "scale": {"scheduler": scheduler},
+        },
+    )
+    out_dir = Path(out_dir) if out_dir is not None else Path("out") / input_path.name.split(".")[0]
+    guess_format(input_path)  # a missing or unknown input fails before anything else
+    check_output_dir(out_dir, overwrite)
+    ms.check_mapper_available(config.mapping.mapper)
+
+    with timer("read"), progress.stage("read", total=1) as bar:
+        rec = read_input(input_path, config)
+        bar.advance()
+    with timer("slam"):
+        slam = run_slam_recording(rec, config.slam, progress)
+
+    with staged_run_folder(out_dir, overwrite) as stage:
+        write_config(config, stage / "config.yaml")
+        write_scans(stage / SCANS_FILE, rec.scans, rec.laser_in_base_xytheta)
+        files = write_trajectories(stage / TRAJECTORY_DIR, slam)
+        # Map with the poses as the run folder stores them (TUM text), so that ``remap`` with the run's own
+        # trajectory reproduces these maps bit for bit.
+        trajectories = {
+            "before": (read_tum(files["odometry"])[1], slam.cov_before_xytheta),
+            "after": (read_tum(files["optimized"])[1], slam.cov_after_xytheta),
+        }
+        with tile_engine(config.scale) as renderer:
+            layers, maps, params, bounds = build_maps(
+                rec.scans, rec.laser_in_base_xytheta, trajectories, config, timer, progress, renderer=renderer
+            )
+        (stage / "maps").mkdir()
+        params.save(ms.params_path(stage / "maps"))
+        with timer("export"), progress.stage("export", total=1) as bar:
+            write_maps(
+                stage / "maps",
+                layers,
+                {k: v[0][:, :2] for k, v in trajectories.items()},
+                loop_closure_segments(slam),
+                config.mapping,
+                config.export,
+                int(rec.scans.stamps_ns[-1]),
+                max_variance(layers),
+            )
+            bar.advance()
+        with timer("evaluate"):
+            metrics = evaluate_run(input_path, rec, slam, maps)
+        summary = make_summary(input_path, rec, slam, config, layers["after"], bounds, params, metrics, timer)
+        summary["tiles"] = tiles_summary(maps, config)
+        write_summary(stage, summary)
+    return summary
+
+
+def evaluate_run(
+    input_path: Path, rec: Recording, slam: SlamResult, maps: dict[str, IncrementalMap]
+) -> dict[str, Any]:
+    """ATE before / after against the recording's reference poses, AUC before / after against a
+    ground-truth raster beside the input (simulated worlds, scored by the map of all the beams); None where
+    there is no reference."""
+    metrics: dict[str, Any] = {"ate_rmse_m": None, "auc": None}
+    if rec.reference is not None and len(rec.reference) == len(slam.stamps_ns):
+        ref = rec.reference.poses_xytheta
+        metrics["ate_rmse_m"] = {
+            "before": ate_rmse(slam.poses_before_xytheta, ref),
+            "after": ate_rmse(slam.poses_after_xytheta, ref),
+        }
+    from datasets.simulation import ground_truth_path, load_ground_truth
+
+    gt_path = ground_truth_path(input_path)
+    if gt_path.is_file():
+        gt = load_ground_truth(gt_path)
+        metrics["auc"] = {
+            name: ms.ground_truth_auc(
+                m.factory(m.beams, m.cov_xytheta), gt.occupancy, gt.origin_xy_m, gt.resolution_m
+            )
+            for name, m in maps.items()
+        }
+        metrics["auc_ground_truth"] = str(gt_path)
+    return metrics
+
+
+def make_summary(
+    input_path: Path,
+    rec: Recording,
+    slam: SlamResult,
+    config: Config,
+    after: MapLayers,
+    bounds: ms.Bounds,
+    params: ms.GPParams,
+    metrics: dict[str, Any],
+    timer: StageTimer,
+) -> dict[str, Any]:
+    """``summary.json``: counts, timings, loop closures, metrics, map geometry, and a ``table``."""
+    timings = dict(timer.seconds)
+    timings["total"] = timer.total()
+    data_s = (rec.scans.stamps_ns[-1] - rec.scans.stamps_ns[0]) / 1e9
+    s = slam.summary()
+    ate = metrics["ate_rmse_m"]
+    auc = metrics["auc"]
+    table: dict[str, Any] = {
+        "input": str(input_path),
+        "scans": s["scans"],
+        "keyframes": s["keyframes"],
+        "loop closures (accepted / rejected)": (
+            f"{s['loop_closures_accepted']} / {s['loop_closures_rejected']}"
+        ),
+        "ATE before / after loop closure (m)": "-"
+        if ate is None
+        else f"{ate['before']:.3f} / {ate['after']:.3f}",
+        "map AUC before / after loop closure": "-"
+        if auc is None
+        else f"{auc['before']:.4f} / {auc['after']:.4f}",
+        "map": (
+            f"{after.shape[1]} x {after.shape[0]} cells at {after.resolution_m} m ({config.mapping.mapper})"
+        ),
+    }
+    for name, sec in timings.items():
+        table[f"wall time {name} (s)"] = round(sec, 2)
+    table["real-time factor"] = round(data_s / timings["total"], 1) if timings["total"] > 0 else None
+    return {
+        "input": str(input_path),
+        "format": rec.format,
+        "mapper": config.mapping.mapper,
+        "counts": {
+            "scans": s["scans"],
+            "beams": int(rec.scans.beam_counts().sum()),
+            "keyframes": s["keyframes"],
+            "loop_closures": s["loop_closures_accepted"],
+            "loop_closures_rejected": s["loop_closures_rejected"],
+        },
+        "loop_closures": [
+            {"query_scan": int(c.query_scan), "target_scan": int(c.target_scan)} for c in slam.loop_closures
+        ],
+        "metrics": metrics,
+        "map": {
+            "resolution_m": after.resolution_m,
+            "origin_xy_m": list(after.origin_xy_m),
+            "shape_hw": list(after.shape),
+            "bounds_xy_m": list(bounds),
+        },
+        "params": params.to_dict(),
+        "slam": s,
+        "data_duration_s": data_s,
+        "timings_s": timings,
+        "realtime_factor": data_s / timings["total"] if timings["total"] > 0 else None,
+        "table": table,
+    }
+
+
+def run_demo(
+    out: Path = Path("out/demo"),
+    seed: int = 0,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+    scheduler: str | None = None,
+) -> dict[str, Any]:
+    """Simulate the ``loop`` world into ``OUT/input/loop.mcap`` and run the full pipeline into ``OUT/run``."""
+    from datasets.simulation import simulate
+
+    out = Path(out)
+    run_dir = out / "run"
+    check_output_dir(run_dir, overwrite)
+    bag = out / "input" / f"loop-seed{seed}.mcap"
+    if not bag.exists():
+        bag.parent.mkdir(parents=True, exist_ok=True)
+        simulate("loop", bag, seed=seed)
+    return run_pipeline(bag, run_dir, overwrite=overwrite, progress=progress, scheduler=scheduler)

@@ -1,0 +1,183 @@
+"""Tiled rendering in the pipeline: the ``scale`` configuration, the engines that render tiles (in this
+process, or on a Dask cluster) and the glue that turns beams into a tiled, incrementally updatable map.
+
+The algorithms live in :mod:`mapping.tiling`; this module only chooses where tiles are rendered.
+
+Engines (``scale.scheduler`` in the configuration, ``--scheduler`` on the command line):
+
+- ``null`` (default): tiles one after another in this process, each tile's queries on numba's threads;
+- ``local``: a :class:`distributed.LocalCluster` of ``scale.workers`` processes with
+  ``scale.threads_per_worker`` threads each, started for the run and closed after it;
+- ``tcp://HOST:PORT`` (any Dask scheduler address): a running cluster. Its workers must import this project:
+  start them from the checkout, e.g. ``cd CHECKOUT && PYTHONPATH=. dask worker tcp://HOST:PORT``.
+
+A Dask render scatters its :class:`~mapping.tiling.render.RenderJob` (the indexed beams, the grid, the map
+factory with the learnt parameters, the covariances) to every worker once, then maps one task per tile; each
+task selects its tile's support, builds the map of it and queries the tile, and returns the float32 layers.
+Results are the same bit for bit as the in-process engine's (a tile's numbers depend only on its support and
+its queries, not on where or in which order it runs). Numba's thread pool inside a worker is set to the cores
+left per worker thread, so that workers do not oversubscribe the machine.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapping.beams import Beams
+from mapping.config import MappingConfig
+from mapping.exports import MapLayers
+from mapping.tiling import IncrementalMap, RenderJob, TileGrid, TileRenderer, TileResult, render_serial
+from mapping.tiling.render import render_tile
+from mapping.train import GPParams
+from pipeline.errors import PipelineError
+from pipeline.scale_config import ScaleConfig
+
+
+@dataclass(frozen=True)
+class GPMapFactory:
+    """The map factory of a tile (:data:`mapping.tiling.render.MapFactory`): the pipeline's GP map of
+    ``mapper`` with learnt ``params`` (through :func:`pipeline.mapping_stage.build_gp_map`). Picklable, so
+    that Dask ships it to its workers."""
+
+    params: GPParams
+    cfg: MappingConfig
+    mapper: str
+
+    def __call__(self, beams: Beams, cov_xytheta: NDArray | None) -> Any:
+        from pipeline.mapping_stage import build_gp_map
+
+        return build_gp_map(beams, self.params, self.cfg, cov_xytheta, self.mapper)
+
+
+def _render_task(tile: int, job: RenderJob, numba_threads: int | None) -> TileResult:
+    """One Dask task: render ``tile``, numba limited to ``numba_threads`` threads in this worker thread."""
+    import numba
+
+    if numba_threads is None:
+        from distributed import get_worker
+
+        numba_threads = max(1, (os.cpu_count() or 1) // max(get_worker().state.nthreads, 1))
+    numba.set_num_threads(min(numba_threads, numba.config.NUMBA_NUM_THREADS))
+    return render_tile(job, tile)
+
+
+class DaskEngine:
+    """Renders tiles on a Dask cluster: a local one (``"local"``) or a running scheduler by address."""
+
+    def __init__(
+        self, scheduler: str, workers: int = 2, threads_per_worker: int = 1, connect_timeout_s: float = 20.0
+    ) -> None:
+        self.scheduler = scheduler
+        self.connect_timeout_s = connect_timeout_s
+        self.workers = workers
+        self.threads_per_worker = threads_per_worker
+        self.client = None
+        self._cluster = None
+        self.numba_threads: int | None = None
+
+    def __enter__(self) -> DaskEngine:
+        from distributed import Client, LocalCluster
+
+        try:
+            if self.scheduler == "local":
+                self._cluster = LocalCluster(
+                    n_workers=self.workers,
+                    threads_per_worker=self.threads_per_worker,
+                    processes=True,
+                    dashboard_address=None,
+                )
+                self.client = Client(self._cluster)
+                cores = os.cpu_count() or 1
+                self.numba_threads = max(1, cores // (self.workers * self.threads_per_worker))
+            else:
+                self.client = Client(self.scheduler, timeout=f"{self.connect_timeout_s}s")
+        except (OSError, TimeoutError) as exc:
+            self.__exit__()
+            raise PipelineError(f"cannot reach the Dask scheduler {self.scheduler!r}: {exc}") from None
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.client is not None:
+            self.client.close()
+            self.client = None
+        if self._cluster is not None:
+            self._cluster.close()
+            self._cluster = None
+
+    def __call__(self, job: RenderJob, tiles: Iterable[int]) -> Iterator[TileResult]:
+        from distributed import as_completed
+
+        if self.client is None:
+            raise RuntimeError("DaskEngine must be used inside a 'with' block")
+        tiles = [int(t) for t in tiles]
+        if not tiles:
+            return
+        shared = self.client.scatter(job, broadcast=True, hash=False)
+        futures = self.client.map(
+            _render_task, tiles, job=shared, numba_threads=self.numba_threads, pure=False
+        )
+        try:
+            for fut in as_completed(futures):
+                yield fut.result()
+        finally:
+            self.client.cancel([*futures, shared])
+
+
+@contextmanager
+def tile_engine(cfg: ScaleConfig) -> Iterator[TileRenderer]:
+    """The engine of ``cfg.scheduler``, open for the duration of the block."""
+    if cfg.scheduler is None:
+        yield render_serial
+        return
+    with DaskEngine(cfg.scheduler, cfg.workers, cfg.threads_per_worker, cfg.connect_timeout_s) as engine:
+        yield engine
+
+
+def engine_name(cfg: ScaleConfig) -> str:
+    """``"serial"``, ``"dask-local"`` or ``"dask tcp://..."``, for summaries."""
+    if cfg.scheduler is None:
+        return "serial"
+    return "dask-local" if cfg.scheduler == "local" else f"dask {cfg.scheduler}"
+
+
+def tiled_map(
+    beams: Beams,
+    params: GPParams,
+    cfg: MappingConfig,
+    scale: ScaleConfig,
+    bounds_xy_m: tuple[float, float, float, float],
+    cov_xytheta: NDArray | None,
+    renderer: TileRenderer = render_serial,
+    mapper: str | None = None,
+    layers: MapLayers | None = None,
+) -> IncrementalMap:
+    """The tiled map of ``beams`` on the grid of ``bounds_xy_m`` at ``cfg.resolution_m`` (tiles of
+    ``scale.tile_cells``). Covariances are kept only for GPPOL (GPFOL ignores them, so their changes do not
+    re-render anything). ``layers``: a rendering of these beams made earlier with the same settings, adopted
+    instead of rendering (call :meth:`IncrementalMap.render_all` otherwise)."""
+    from mapping.tiling import ArraySink
+
+    mapper = mapper or cfg.mapper
+    grid = TileGrid.from_bounds(bounds_xy_m, cfg.resolution_m, scale.tile_cells)
+    sink = ArraySink(grid, layers) if layers is not None else None
+    cov = None if mapper == "gpfol" or cov_xytheta is None else np.asarray(cov_xytheta, np.float64)
+    gp = IncrementalMap(
+        beams,
+        grid,
+        GPMapFactory(params, cfg, mapper),
+        cfg.k_occupied,
+        cfg.k_free,
+        cov,
+        sink=sink,
+        renderer=renderer,
+    )
+    if layers is not None:
+        gp.adopt_rendered()
+    return gp

@@ -1,0 +1,162 @@
+"""Neighbour search and the compiled local-GP prediction against brute-force numpy references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapping.beams import beams_from_scans
+from mapping.gpmap import GPOccupancyMap, classify
+from mapping.kernels import make_kernel
+from mapping.neighbours import BeamIndex
+from mapping.pls import pls_probability
+from mapping.train import GPParams
+
+
+def random_beams(seed: int = 0, n_scans: int = 12, n_beams: int = 30, no_return_every: int = 7):
+    """Scans from random poses in a 10 m box, random ranges; every ``no_return_every``-th beam: no return."""
+    rng = np.random.default_rng(seed)
+    poses = np.c_[rng.uniform(0, 10, (n_scans, 2)), rng.uniform(-np.pi, np.pi, n_scans)]
+    angles = [np.linspace(-np.pi / 2, np.pi / 2, n_beams) for _ in range(n_scans)]
+    ranges = []
+    for _ in range(n_scans):
+        r = rng.uniform(0.3, 6.0, n_beams)
+        r[::no_return_every] = np.inf
+        ranges.append(r)
+    return beams_from_scans(ranges, angles, 0.1, 8.0, poses, no_return_free_length_m=3.0, free_margin_m=0.1)
+
+
+def brute_neighbours(beams, q, k_occ, k_free):
+    hits = beams.hit_xy_m
+    d_occ = np.hypot(*(hits - q).T)
+    occ = np.argsort(d_occ, kind="stable")[:k_occ]
+    P = beams.origins_xy_m
+    D = beams.free_ends_xy_m - P
+    l2 = np.einsum("ij,ij->i", D, D)
+    t = np.clip(np.einsum("ij,ij->i", q - P, D) / np.where(l2 > 0, l2, 1.0), 0, 1)
+    C = P + t[:, None] * D
+    d_free = np.hypot(*(C - q).T)
+    free = np.argsort(d_free, kind="stable")[:k_free]
+    return hits[occ], d_occ[occ], C[free], d_free[free]
+
+
+def reference_predict(beams, params, queries, k_occ, k_free):
+    out = []
+    for q in queries:
+        xo, _, xf, _ = brute_neighbours(beams, q, k_occ, k_free)
+        X = np.vstack([xo, xf]) - q
+        y = np.r_[np.ones(len(xo)), -np.ones(len(xf))]
+        k = params.kernel
+        K = k(X) + params.noise_var * np.eye(len(y))
+        ks = k(X, np.zeros((1, 2)))[:, 0]
+        kss = k.diag(np.zeros((1, 2)))[0]
+        mean = ks @ np.linalg.solve(K, y)
+        var = kss - ks @ np.linalg.solve(K, ks)
+        out.append((mean, var))
+    mean, var = np.array(out).T
+    prob = pls_probability(mean, var + params.noise_var, params.alpha, params.beta)
+    return mean, var, prob
+
+
+@pytest.mark.parametrize("cell_m", [0.2, 1.0, 5.0])
+def test_knn_is_exact(cell_m: float) -> None:
+    beams = random_beams(1)
+    index = BeamIndex.build(beams, cell_m, cell_m)
+    rng = np.random.default_rng(3)
+    queries = np.vstack([rng.uniform(-3, 13, (60, 2)), [[50.0, -40.0], [-20.0, 5.0]]])  # some far outside
+    occ, free, t = index.gather(queries, 15, 15)
+    for q, o, f, tf in zip(queries, occ, free, t, strict=True):
+        _, d_occ, _, d_free = brute_neighbours(beams, q, 15, 15)
+        got_occ = np.hypot(index.hit_x[o] - q[0], index.hit_y[o] - q[1])
+        np.testing.assert_allclose(got_occ, d_occ, rtol=0, atol=1e-12)
+        cx = index.seg_x[f] + tf * index.seg_dx[f]
+        cy = index.seg_y[f] + tf * index.seg_dy[f]
+        np.testing.assert_allclose(np.hypot(cx - q[0], cy - q[1]), d_free, rtol=0, atol=1e-12)
+        assert len(set(f.tolist())) == 15  # a segment listed in several cells is counted once
+
+
+def test_knn_with_fewer_items_than_k_pads() -> None:
+    beams = random_beams(2, n_scans=1, n_beams=5, no_return_every=100)  # beam 0 has no return
+    assert beams.is_hit.sum() == 4 and len(beams) == 5
+    index = BeamIndex.build(beams)
+    occ, free, _ = index.gather(np.array([[1.0, 1.0]]), 15, 15)
+    assert (occ[0, :4] >= 0).all() and (occ[0, 4:] == -1).all()
+    assert (free[0, :5] >= 0).all() and (free[0, 5:] == -1).all()
+
+
+@pytest.mark.parametrize("kernel_name", ["nn", "se", "matern32", "matern52"])
+def test_compiled_prediction_matches_numpy_reference(kernel_name: str) -> None:
+    beams = random_beams(4)
+    values = {"nn": {"sigma_0": 3.0, "sigma": 5.0}, "se": {"length_scale": 0.7}}.get(kernel_name, {})
+    params = GPParams(make_kernel(kernel_name, values), noise_var=0.05, alpha=2.5, beta=-0.2)
+    gp = GPOccupancyMap(beams, params, k_occ=15, k_free=15, index_cell_m=0.5)
+    queries = np.random.default_rng(5).uniform(-2, 12, (80, 2))
+    pred = gp.query(queries)
+    mean, var, prob = reference_predict(beams, params, queries, 15, 15)
+    np.testing.assert_allclose(pred.mean, mean, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(pred.variance, var, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(pred.probability, prob, rtol=1e-7, atol=1e-9)
+    prior = params.kernel.diag(np.zeros((1, 2)))[0]
+    assert np.all((pred.variance >= 0) & (pred.variance <= prior))
+
+
+def test_render_equals_query_at_cell_centres_and_any_resolution() -> None:
+    beams = random_beams(6)
+    params = GPParams(make_kernel("nn", {"sigma_0": 3.0, "sigma": 5.0}), 0.05, 2.0, 0.0)
+    gp = GPOccupancyMap(beams, params)
+    layers = gp.render((0.0, 0.0, 4.0, 3.0), 0.5)
+    assert layers.probability.shape == (6, 8)
+    assert layers.origin_xy_m == (0.0, 0.0)
+    # cell (row 1, column 2) is centred at x = 1.25, y = 0.75
+    p = gp.query(np.array([[1.25, 0.75]])).probability[0]
+    assert layers.probability[1, 2] == pytest.approx(p, rel=1e-6)
+    fine = gp.render((0.0, 0.0, 4.0, 3.0), 0.1)
+    assert fine.probability.shape == (30, 40)
+    coarse = list(gp.render_anytime((0.0, 0.0, 4.0, 3.0), (0.1, 1.0)))
+    assert [c.resolution_m for c in coarse] == [1.0, 0.1]
+
+
+def test_duplicate_training_points_do_not_break_the_solve() -> None:
+    """Queries behind the laser clamp every free point of a scan to its origin: K is singular but for noise
+    and jitter; predictions stay finite."""
+    ranges = [np.full(40, 2.0)]
+    angles = [np.linspace(-0.3, 0.3, 40)]
+    beams = beams_from_scans(ranges, angles, 0.1, 10.0, np.array([[0.0, 0.0, 0.0]]), free_margin_m=0.1)
+    params = GPParams(make_kernel("se", {"length_scale": 0.5}), noise_var=1e-9, alpha=1.0, beta=0.0)
+    pred = GPOccupancyMap(beams, params, jitter=1e-8).query(np.array([[-1.0, 0.0], [-5.0, 0.3]]))
+    assert np.all(np.isfinite(pred.mean)) and np.all(np.isfinite(pred.probability))
+
+
+def test_classify_thresholds() -> None:
+    p = np.array([0.1, 0.35, 0.5, 0.65, 0.9])
+    np.testing.assert_array_equal(classify(p, 0.65, 0.35), [0, 0, -1, 1, 1])
+    with pytest.raises(ValueError):
+        classify(p, 0.3, 0.6)
+
+
+def test_failed_cholesky_falls_back_to_jitter() -> None:
+    """Zero noise and coincident free points make K singular: the lane is redone alone with jitter."""
+    ranges = [np.full(20, 2.0)] * 3
+    angles = [np.linspace(-0.2, 0.2, 20)] * 3
+    poses = np.zeros((3, 3))  # three identical scans: every training point has exact duplicates
+    beams = beams_from_scans(ranges, angles, 0.1, 10.0, poses, free_margin_m=0.1)
+    params = GPParams(make_kernel("se", {"length_scale": 0.5}), noise_var=0.0, alpha=1.0, beta=0.0)
+    pred = GPOccupancyMap(beams, params, jitter=1e-6).query(np.array([[-1.0, 0.0], [1.0, 0.0], [2.5, 0.1]]))
+    assert np.all(np.isfinite(pred.mean)) and np.all(np.isfinite(pred.variance))
+    assert np.all((pred.variance >= 0) & (pred.variance <= 1.0))
+
+
+def test_asin_fast_matches_numpy() -> None:
+    import numba as nb
+
+    from mapping.core import asin_fast
+
+    @nb.njit
+    def many(x):
+        out = np.empty_like(x)
+        for i in range(x.size):
+            out[i] = asin_fast(x[i])
+        return out
+
+    x = np.r_[np.linspace(-1, 1, 200_001), -1.0, -0.5, 0.0, 0.5, 1.0, 1e-300, -1e-17]
+    np.testing.assert_allclose(many(x), np.arcsin(x), rtol=0, atol=1e-15)

@@ -1,0 +1,85 @@
+"""The hold-out protocol of SPEC section 6, exactly as written."""
+
+from __future__ import annotations
+
+import math
+import random
+
+import numpy as np
+import pytest
+
+from mapping.evaluation import holdout_split, holdout_test_points, is_carmen_180, raster_cell_centres
+
+
+def test_split_is_deterministic_block_structured_and_disjoint() -> None:
+    a = holdout_split(910, 3)
+    assert a == holdout_split(910, 3)
+    assert a != holdout_split(910, 4)
+    assert len(a) == int(910 * 0.1 / 40) * 40 == 80
+    assert len(set(a)) == len(a) and a == sorted(a)
+    assert all(0 <= i < 910 for i in a)
+    # runs of consecutive indices are whole blocks of 40
+    runs = np.split(np.asarray(a), np.flatnonzero(np.diff(a) != 1) + 1)
+    assert all(len(r) % 40 == 0 for r in runs)
+
+
+def test_split_follows_the_written_rule() -> None:
+    """Re-derive the split with the SPEC's words for several seeds and sizes."""
+    for n, seed in [(910, 0), (910, 1), (2000, 7), (4000, 2)]:
+        rng = random.Random(seed)
+        blocks = int(n * 0.1 / 40)
+        held: list[int] = []
+        while len(held) < blocks * 40:
+            start = rng.randint(0, n - 40)
+            if start in held or start + 40 in held:
+                continue
+            held.extend(range(start, start + 40))
+        assert holdout_split(n, seed) == sorted(held)
+        assert len(holdout_split(n, seed)) == blocks * 40
+
+
+def test_too_few_scans_hold_out_nothing() -> None:
+    assert holdout_split(399, 0) == []
+
+
+def test_test_points_hand_count_and_labels() -> None:
+    """Two held-out scans of 4 beams; ranges 0.5 (1 free point), 4.0 (2), 41 (skipped), 9.9 (4), inf, NaN."""
+    ranges = [np.array([0.5, 4.0, 41.0, 9.9]), np.array([np.inf, 3.0, np.nan, 40.0]), np.array([1.0] * 4)]
+    angles = [np.linspace(-np.pi / 2, np.pi / 2 * 0.5, 4)] * 3
+    poses = np.array([[1.0, 2.0, 0.3], [0.0, 0.0, 0.0], [5.0, 5.0, 1.0]])
+    pts, labels = holdout_test_points(ranges, angles, poses, [0, 1], seed=5, carmen_180=True)
+    # scan 0: 0.5 -> 1 + 1, 4.0 -> 1 + 2, 41 skipped, 9.9 -> 1 + 4 ; scan 1: 3.0 -> 1 + 1, 40.0 -> 1 + 20
+    assert labels.size == 2 + 3 + 5 + 2 + 21
+    assert labels.sum() == 5
+    # the first point is the endpoint of beam 0 of scan 0 at theta - pi/2 + 0 * pi / 4
+    a = 0.3 - math.pi / 2
+    np.testing.assert_allclose(pts[0], [1.0 + 0.5 * math.cos(a), 2.0 + 0.5 * math.sin(a)], atol=1e-12)
+    assert labels[0] and not labels[1]
+    # the free point of beam 0 uses the first uniform draw of Random(seed + 1)
+    d = random.Random(6).uniform(0, max(0.0, 0.5 - 0.1))
+    np.testing.assert_allclose(pts[1], [1.0 + d * math.cos(a), 2.0 + d * math.sin(a)], atol=1e-12)
+    # free points lie on the beam before the endpoint
+    again, _ = holdout_test_points(ranges, angles, poses, [0, 1], seed=5, carmen_180=True)
+    np.testing.assert_array_equal(pts, again)
+
+
+def test_test_points_use_the_scans_own_angles_when_not_carmen() -> None:
+    ranges = [np.array([2.0])]
+    angles = [np.array([0.25])]
+    pts, labels = holdout_test_points(ranges, angles, np.array([[0.0, 0.0, 0.5]]), [0], 0, carmen_180=False)
+    np.testing.assert_allclose(pts[0], [2 * math.cos(0.75), 2 * math.sin(0.75)], atol=1e-12)
+    assert labels.tolist() == [True, False]
+
+
+def test_carmen_convention_detection() -> None:
+    n = 180
+    assert is_carmen_180((-np.pi / 2 + np.arange(n) * np.pi / n).astype(np.float32))
+    assert not is_carmen_180(np.linspace(-np.pi / 2, np.pi / 2, n))
+
+
+def test_raster_cell_centres() -> None:
+    c = raster_cell_centres((2, 3), np.array([10.0, 20.0]), 0.5)
+    assert c.shape == (6, 2)
+    np.testing.assert_allclose(c[0], [10.25, 20.25])
+    np.testing.assert_allclose(c[4], [10.75, 20.75])  # row 1, column 1
+    assert c[:, 0].max() == pytest.approx(11.25)

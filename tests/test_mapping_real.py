@@ -1,0 +1,121 @@
+"""GPFOL on real and simulated data: the Intel lab (corrected poses) and the simulated street world."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from datasets.registry import open_dataset
+from mapping.config import MappingConfig
+from mapping.gpmap import GPOccupancyMap
+from pipeline.config import load_config
+from pipeline.evaluate_map import evaluate_holdout, make_beams, reference_laser_poses
+from pipeline.mapping_stage import fit_params
+from pipeline.progress import Progress
+from tests.conftest import REPO, data_file
+
+FAST = {"train_anneal_evaluations": 40, "train_lbfgs_iterations": 40, "train_problems": 48}
+
+
+@pytest.fixture(scope="module")
+def intel():
+    path = data_file("intel/intel.gfs.log")
+    rec = open_dataset(path)
+    return rec, reference_laser_poses(rec, path)
+
+
+def test_intel_holdout_seed0_beats_the_grid_and_the_hilbert_maps_reference(intel) -> None:
+    rec, poses = intel
+    cfg = MappingConfig(**FAST)
+    row = evaluate_holdout(rec, poses, [0], cfg, Progress())["per_seed"][0]
+    assert row["held_out_scans"] == 80 and row["test_points"] > 30_000
+    assert row["auc_gpfol"] > 0.97  # Hilbert maps (Fourier features) score about 0.93 on this protocol
+    assert row["auc_gpfol"] > row["auc_grid"] + 0.02
+
+
+def test_intel_map_sees_walls_and_free_space(intel) -> None:
+    rec, poses = intel
+    cfg = MappingConfig(**FAST)
+    beams = make_beams(rec, poses, np.arange(len(rec.scans)), cfg)
+    gp = GPOccupancyMap(beams, fit_params(beams, cfg), cfg.k_occupied, cfg.k_free)
+    rng = np.random.default_rng(0)
+    hits = beams.hit_xy_m[rng.choice(int(beams.is_hit.sum()), 3000, replace=False)]
+    on_path = poses[:, :2]
+    p_hit = gp.query(hits).probability
+    p_path = gp.query(on_path).probability
+    # endpoints are mostly occupied (some belong to people or doors that later scans see as free)
+    assert np.median(p_hit) > 0.9 and np.mean(p_hit >= cfg.occupied_threshold) > 0.7
+    # where the robot drove is free
+    assert np.mean(p_path <= cfg.free_threshold) > 0.99
+    layers = gp.render((0.0, -10.0, 5.0, -5.0), 0.1)
+    assert layers.probability.shape == (50, 50)
+    assert np.isfinite(layers.variance).all() and (layers.variance >= 0).all()
+
+
+@pytest.mark.slow
+def test_street_world_ground_truth_protocol(tmp_path) -> None:
+    from datasets.simulation import simulate
+    from pipeline.evaluate_map import evaluate_map
+
+    bag = tmp_path / "street.bag"
+    simulate("street", bag, seed=0)
+    out = evaluate_map(bag, None, REPO / "mapping" / "configs" / "noise_free_simulation.yaml", Progress())
+    assert out["protocol"] == "ground_truth" and out["seeds"] == []
+    assert out["auc"]["gppol"] is None
+    assert out["auc"]["gpfol"] > 0.95
+    assert out["auc"]["gpfol"] > out["auc"]["grid"] + 0.2
+    assert out["per_seed"][0]["test_points"] == 1000 * 1800
+
+
+@pytest.mark.slow
+def test_cli_evaluate_map_json_on_intel(tmp_path) -> None:
+    cfg = tmp_path / "fast.yaml"
+    cfg.write_text("mapping:\n" + "".join(f"  {k}: {v}\n" for k, v in FAST.items()))
+    result = subprocess.run(
+        [sys.executable, "run.py", "evaluate", "map", str(data_file("intel/intel.gfs.log")), "--seed", "1",
+         "--config", str(cfg), "--json"],
+        cwd=REPO, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    out = json.loads(result.stdout)
+    assert out["protocol"] == "holdout" and out["seeds"] == [1]
+    assert set(out["auc"]) == {"gppol", "gpfol", "grid"}
+    assert out["auc"]["gpfol"] > out["auc"]["grid"]
+
+
+def test_without_reference_poses_the_map_uses_the_slam_trajectory() -> None:
+    """SPEC section 6: a recording without reference poses is mapped on the SLAM stage's trajectory."""
+    import dataclasses
+    from pathlib import Path
+
+    from datasets.simulation import make_world
+    from pipeline.evaluate_map import mapping_laser_poses
+
+    rec = make_world("loop", 0).recording
+    truth, source = mapping_laser_poses(rec, Path("loop"))
+    assert source == "reference"
+    poses, source = mapping_laser_poses(dataclasses.replace(rec, reference=None), Path("loop"))
+    assert source == "slam" and poses.shape == truth.shape
+    assert np.abs(poses[:, :2] - truth[:, :2]).max() < 0.5
+
+
+def test_evaluate_map_of_a_missing_file_is_one_clear_error(tmp_path) -> None:
+    from datasets.errors import GpomError
+    from pipeline.evaluate_map import evaluate_map
+
+    with pytest.raises(GpomError, match="no such file"):
+        evaluate_map(tmp_path / "absent.clf", None, None, Progress())
+
+
+def test_bad_params_file_is_a_config_error(tmp_path) -> None:
+    from datasets.errors import ConfigError
+
+    bad = tmp_path / "p.json"
+    bad.write_text("{}")
+    cfg = load_config(overrides={"mapping": {"params_file": str(bad)}}).mapping
+    with pytest.raises(ConfigError, match=r"p\.json"):
+        fit_params(None, cfg)

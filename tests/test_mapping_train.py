@@ -1,0 +1,110 @@
+"""Training: the batched log marginal likelihood (eq. 9), its gradient, the optimiser, PLS, stored params."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from mapping.kernels import make_kernel
+from mapping.pls import fit_pls, loo_predictions, pls_probability
+from mapping.train import GPParams, ParamsFileError, log_marginal_likelihood, train_gp, train_hyperparameters
+from tests.test_mapping_core import random_beams
+
+
+def problems(seed=0, q=6, n=10):
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(q, n, 2))
+    y = np.where(X[..., 0] + 0.3 * rng.normal(size=(q, n)) > 0, 1.0, -1.0)
+    return X, y
+
+
+def test_lml_is_equation_9_summed_over_problems() -> None:
+    X, y = problems()
+    k = make_kernel("se", {"length_scale": 0.9})
+    total = 0.0
+    for Xi, yi in zip(X, y, strict=True):
+        K = k(Xi) + 0.1 * np.eye(len(yi))
+        fit = -0.5 * yi @ np.linalg.solve(K, yi)
+        total += fit - 0.5 * np.linalg.slogdet(K)[1] - len(yi) / 2 * np.log(2 * np.pi)
+    assert log_marginal_likelihood(k, X, y, 0.1) == pytest.approx(total, rel=1e-10)
+
+
+@pytest.mark.parametrize("name", ["nn", "se", "matern32", "matern52"])
+def test_lml_gradient_matches_finite_differences(name: str) -> None:
+    X, y = problems(1)
+    k = make_kernel(name)
+    _, g = log_marginal_likelihood(k, X, y, 0.05, eval_gradient=True, noise_gradient=True)
+    x = np.r_[k.theta, np.log(0.05)]
+    eps = 1e-6
+    for p in range(x.size):
+        hi, lo = x.copy(), x.copy()
+        hi[p] += eps
+        lo[p] -= eps
+        f = [log_marginal_likelihood(k.with_theta(z[:-1]), X, y, float(np.exp(z[-1]))) for z in (hi, lo)]
+        assert g[p] == pytest.approx((f[0] - f[1]) / (2 * eps), rel=1e-4, abs=1e-6)
+
+
+def test_training_increases_the_likelihood_and_respects_bounds() -> None:
+    X, y = problems(2, q=10)
+    k0 = make_kernel("se", {"length_scale": 20.0}, {"length_scale": (0.05, 50.0)})
+    trained, nv, info = train_hyperparameters(k0, X, y, 0.1, maxfun=60, maxiter=50, seed=0)
+    assert log_marginal_likelihood(trained, X, y, 0.1) > log_marginal_likelihood(k0, X, y, 0.1) + 1.0
+    assert np.all((trained.theta >= k0.bounds[:, 0] - 1e-9) & (trained.theta <= k0.bounds[:, 1] + 1e-9))
+    assert nv == 0.1 and info["anneal_evaluations"] >= 60
+
+
+def test_loo_formulas_equal_explicit_leave_one_out() -> None:
+    X, y = problems(3, q=2, n=8)
+    k = make_kernel("nn")
+    mu, var = loo_predictions(k, X, y, 0.05)
+    for q in range(2):
+        for i in range(8):
+            keep = np.arange(8) != i
+            K = k(X[q, keep]) + 0.05 * np.eye(7)
+            ks = k(X[q, keep], X[q, i : i + 1])[:, 0]
+            m = ks @ np.linalg.solve(K, y[q, keep])
+            v = k.diag(X[q, i : i + 1])[0] + 0.05 - ks @ np.linalg.solve(K, ks)
+            assert mu[q, i] == pytest.approx(m, rel=1e-8, abs=1e-10)
+            assert var[q, i] == pytest.approx(v, rel=1e-8)
+
+
+def test_pls_fit_separates_and_link_has_the_square_root() -> None:
+    rng = np.random.default_rng(0)
+    y = np.where(rng.random(400) < 0.5, 1.0, -1.0)
+    mu = 0.8 * y + 0.3 * rng.normal(size=400)
+    var = np.full(400, 0.2)
+    alpha, beta = fit_pls(mu, var, y)
+    assert alpha > 1.0 and abs(beta / alpha) < 0.2  # the boundary mu = -beta / alpha lies near 0
+    p = pls_probability(mu, var, alpha, beta)
+    assert np.mean((p > 0.5) == (y > 0)) > 0.95
+    # SPEC section 5: Phi((a mu + b) / sqrt(1 + a^2 var)), not eq. (10)'s (1 + a^2 var)
+    from scipy.stats import norm
+
+    assert pls_probability(1.0, 3.0, 2.0, 0.5) == pytest.approx(norm.cdf(2.5 / np.sqrt(13.0)))
+
+
+def test_train_gp_end_to_end_and_params_round_trip(tmp_path) -> None:
+    beams = random_beams(8, n_scans=20)
+    params = train_gp(beams, "nn", noise_var=0.1, n_scans=10, n_problems=12, maxfun=20, maxiter=10, seed=1)
+    assert params.info["n_scans"] == 10 and params.alpha > 0
+    path = tmp_path / "params.json"
+    params.save(path)
+    again = GPParams.load(path)
+    assert again.kernel.name == "nn"
+    np.testing.assert_allclose(again.kernel.theta, params.kernel.theta)
+    assert (again.noise_var, again.alpha, again.beta) == (params.noise_var, params.alpha, params.beta)
+
+
+def test_bad_params_file(tmp_path) -> None:
+    path = tmp_path / "p.json"
+    path.write_text("{not json")
+    with pytest.raises(ParamsFileError, match="cannot read"):
+        GPParams.load(path)
+    path.write_text(json.dumps({"format": "gpom-gp-params-1", "kernel": "nn"}))
+    with pytest.raises(ParamsFileError, match="bad GP parameter file"):
+        GPParams.load(path)
+    path.write_text(json.dumps({"format": "other"}))
+    with pytest.raises(ParamsFileError, match="not a GP parameter file"):
+        GPParams.load(path)

@@ -1,0 +1,336 @@
+"""The full pipeline (issue 7): run folders, exports read back, remap, interruption, errors.
+
+One simulated ``loop`` run is shared by the module (it takes about a minute); the Intel and scans-only
+runs are marked slow.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from datasets.ros.maps import read_map_bag
+from mapping.exports import read_layers_npz, read_map_server
+from pipeline.run import run_pipeline
+from tests.conftest import REPO, data_file
+from tests.layer_checks import assert_same_map
+
+FAST_TRAINING = {"mapping": {"train_anneal_evaluations": 20, "train_lbfgs_iterations": 20}}
+
+SPEC_FILES = [
+    "config.yaml",
+    "summary.json",
+    "scans.npz",
+    "trajectory/odometry.tum",
+    "trajectory/optimized.tum",
+    "trajectory/pose_graph.g2o",
+    "trajectory/covariances.npz",
+    "maps/before/occupancy.pgm",
+    "maps/before/occupancy.yaml",
+    "maps/before/layers.npz",
+    "maps/before/occupancy.png",
+    "maps/before/variance.png",
+    "maps/before/classified.png",
+    "maps/after/occupancy.pgm",
+    "maps/after/occupancy.yaml",
+    "maps/after/layers.npz",
+    "maps/after/occupancy.png",
+    "maps/after/variance.png",
+    "maps/after/classified.png",
+    "maps/before_after.png",
+    "maps/maps.mcap",
+]
+
+
+def run_cli(*args: str, timeout: float = 900) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "run.py", *args], cwd=REPO, capture_output=True, text=True, timeout=timeout
+    )
+
+
+def write_config(path: Path, overrides: dict) -> Path:
+    path.write_text(yaml.safe_dump(overrides))
+    return path
+
+
+@pytest.fixture(scope="module")
+def loop_bag(tmp_path_factory) -> Path:
+    from datasets.simulation import simulate
+
+    bag = tmp_path_factory.mktemp("loop") / "loop.mcap"
+    simulate("loop", bag, seed=0)
+    return bag
+
+
+@pytest.fixture(scope="module")
+def loop_run(loop_bag, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("runs") / "loop"
+    cfg = write_config(out.parent / "fast.yaml", FAST_TRAINING)
+    run_pipeline(loop_bag, out, config_path=cfg, mapper="gpfol")
+    return out
+
+
+def check_run_folder(out: Path) -> dict:
+    """Every file of SPEC section 4 is there and the exports agree with the layers."""
+    for name in SPEC_FILES:
+        assert (out / name).is_file(), name
+    summary = json.loads((out / "summary.json").read_text())
+    rasters = read_map_bag(out / "maps" / "maps.mcap")
+    for which in ("before", "after"):
+        layers = read_layers_npz(out / "maps" / which / "layers.npz")
+        assert layers.probability.dtype == np.float32 and layers.shape == tuple(summary["map"]["shape_hw"])
+        p, meta = read_map_server(out / "maps" / which / "occupancy.yaml")
+        assert (out / "maps" / which / meta["image"]).is_file()
+        assert p.shape == layers.shape and meta["resolution"] == layers.resolution_m
+        assert meta["origin"][:2] == list(layers.origin_xy_m)
+        np.testing.assert_allclose(p, layers.probability, atol=0.5 / 255 + 1e-6)
+        for kind in ("occupancy", "variance"):
+            grid = rasters[f"/{which}/{kind}"]
+            assert grid.shape == layers.shape
+            assert grid.resolution_m == pytest.approx(layers.resolution_m)
+            assert grid.origin_xy_m == pytest.approx(layers.origin_xy_m)
+        occ = rasters[f"/{which}/occupancy"].layers["value"]
+        np.testing.assert_array_equal(occ, np.round(layers.probability.astype(np.float64) * 100))
+        gm = rasters[f"/{which}/grid_map"]
+        assert gm.shape == layers.shape and gm.origin_xy_m == pytest.approx(layers.origin_xy_m)
+        for name in ("probability", "mean", "variance"):
+            np.testing.assert_array_equal(gm.layers[name], getattr(layers, name))
+    return summary
+
+
+def test_loop_run_folder_is_complete(loop_run) -> None:
+    summary = check_run_folder(loop_run)
+    assert summary["counts"]["scans"] == 454
+    assert summary["counts"]["loop_closures"] >= 1
+    ate = summary["metrics"]["ate_rmse_m"]
+    assert ate["after"] < 0.05 and ate["after"] <= ate["before"]
+    auc = summary["metrics"]["auc"]
+    assert 0.8 < auc["before"] <= 1 and 0.8 < auc["after"] <= 1
+    assert set(summary["timings_s"]) >= {
+        "read",
+        "slam",
+        "train",
+        "map_before",
+        "map_after",
+        "export",
+        "total",
+    }
+    assert not list(loop_run.parent.glob("*.partial-*"))
+
+
+def test_remap_with_own_trajectory_reproduces_after_map(loop_run) -> None:
+    result = run_cli("remap", str(loop_run), "--recompute", "--json")
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout)["recomputed"] is True
+    a = read_layers_npz(loop_run / "maps/after/layers.npz")
+    b = read_layers_npz(loop_run / "remap/maps/remap/layers.npz")
+    assert_same_map(a, b)
+    # without --recompute nothing changed, so nothing is recomputed
+    result = run_cli("remap", str(loop_run), "--out", str(loop_run.parent / "copy"), "--json")
+    assert result.returncode == 0 and json.loads(result.stdout)["recomputed"] is False
+
+
+def test_remap_with_perturbed_trajectory_differs(loop_run, tmp_path) -> None:
+    from slam.trajectory_io import read_tum, write_tum
+
+    stamps, poses = read_tum(loop_run / "trajectory/optimized.tum")
+    rng = np.random.default_rng(0)
+    poses = poses + rng.normal(0, [0.1, 0.1, 0.02], poses.shape)
+    write_tum(tmp_path / "noisy.tum", stamps, poses)
+    out = tmp_path / "remap"
+    result = run_cli("remap", str(loop_run), "--poses", str(tmp_path / "noisy.tum"), "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    a = read_layers_npz(loop_run / "maps/after/layers.npz")
+    b = read_layers_npz(out / "maps/remap/layers.npz")
+    assert a.shape == b.shape
+    assert np.mean(np.abs(a.probability - b.probability)) > 0.01
+
+
+def test_remap_with_a_g2o_written_by_gtsam(loop_run, tmp_path) -> None:
+    import gtsam
+
+    graph, values = gtsam.readG2o(str(loop_run / "trajectory/pose_graph.g2o"), False)
+    with np.load(loop_run / "trajectory/covariances.npz") as z:
+        keyframes = len(z["indices"])
+    assert values.size() == keyframes and graph.size() >= keyframes - 1  # GTSAM reads every edge
+    shifted = gtsam.Values()
+    for k in range(keyframes):
+        p = values.atPose2(k)
+        shifted.insert(k, gtsam.Pose2(p.x() + 0.5, p.y(), p.theta()))  # the whole map moved 0.5 m in x
+    gtsam.writeG2o(graph, shifted, str(tmp_path / "shifted.g2o"))
+    out = tmp_path / "remap"
+    res = run_cli("remap", str(loop_run), "--poses", str(tmp_path / "shifted.g2o"), "--out", str(out))
+    assert res.returncode == 0, res.stderr
+    a = read_layers_npz(loop_run / "maps/after/layers.npz")
+    b = read_layers_npz(out / "maps/remap/layers.npz")
+    # 0.5 m is 5 cells: the remapped map is the run's map moved by 5 columns (GTSAM writes 6 digits)
+    inner = (slice(20, -20), slice(20, -20))
+    diff = np.abs(b.probability[:, 5:][inner] - a.probability[:, :-5][inner])
+    assert np.median(diff) < 1e-3 and np.mean(diff > 0.1) < 0.01
+
+    # a graph optimised by GTSAM itself (plain Gaussian factors, no robust loss) maps too, nearly the same
+    graph.add(gtsam.PriorFactorPose2(0, values.atPose2(0), gtsam.noiseModel.Isotropic.Sigma(3, 1e-3)))
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
+    gtsam.writeG2o(graph, result, str(tmp_path / "optimised.g2o"))
+    out = tmp_path / "remap2"
+    res = run_cli("remap", str(loop_run), "--poses", str(tmp_path / "optimised.g2o"), "--out", str(out))
+    assert res.returncode == 0, res.stderr
+    c = read_layers_npz(out / "maps/remap/layers.npz")
+    assert c.shape == a.shape and np.mean(np.abs(c.probability - a.probability)) < 0.05
+
+
+def test_remap_errors(loop_run, tmp_path) -> None:
+    res = run_cli("remap", str(tmp_path))
+    assert (
+        res.returncode == 1 and res.stderr.startswith("error: ") and "not a complete run folder" in res.stderr
+    )
+    (tmp_path / "bad.tum").write_text("1.0 2.0\n")
+    res = run_cli("remap", str(loop_run), "--poses", str(tmp_path / "bad.tum"), "--out", str(tmp_path / "o"))
+    assert res.returncode == 1 and "expected 8 fields" in res.stderr and not (tmp_path / "o").exists()
+    res = run_cli("remap", str(loop_run), "--bounds", "1,2,3", "--out", str(tmp_path / "o"))
+    assert res.returncode == 1 and "--bounds must be" in res.stderr
+
+
+def test_run_refuses_existing_folder_and_bad_config(loop_bag, loop_run, tmp_path) -> None:
+    res = run_cli("run", str(loop_bag), "--out", str(loop_run), "--mapper", "gpfol")
+    assert res.returncode == 1
+    assert res.stderr.strip() == f"error: {loop_run}: already exists (use --overwrite to replace it)"
+    bad = write_config(tmp_path / "bad.yaml", {"mapping": {"resolutoin_m": 0.2}})
+    res = run_cli("run", str(loop_bag), "--out", str(tmp_path / "o"), "--config", str(bad))
+    assert res.returncode == 1 and "Traceback" not in res.stderr
+    assert res.stderr.strip() == f"error: {bad}: unknown configuration key 'mapping.resolutoin_m'"
+    bad = write_config(tmp_path / "bad2.yaml", {"mapping": {"resolution_m": -0.1}})
+    res = run_cli("run", str(loop_bag), "--out", str(tmp_path / "o"), "--config", str(bad))
+    assert res.returncode == 1 and "invalid value -0.1 for 'mapping.resolution_m'" in res.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_interrupted_run_leaves_no_complete_folder(loop_bag, tmp_path) -> None:
+    out = tmp_path / "run"
+    cfg = write_config(tmp_path / "fast.yaml", FAST_TRAINING)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "run.py",
+            "run",
+            str(loop_bag),
+            "--out",
+            str(out),
+            "--config",
+            str(cfg),
+            "--mapper",
+            "gpfol",
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 300
+    while not list(tmp_path.glob("run.partial-*")) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    assert list(tmp_path.glob("run.partial-*")), "the run never started writing"
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, stderr
+    assert "interrupted" in stderr and "Traceback" not in stderr
+    assert not out.exists()
+    assert not list(tmp_path.glob("run.partial-*"))
+
+
+@pytest.mark.slow
+def test_run_on_scans_only_bag(tmp_path) -> None:
+    """A real bag without odometry or tf: SLAM from the scans alone, then maps."""
+    out = tmp_path / "lsm"
+    cfg = write_config(tmp_path / "fast.yaml", FAST_TRAINING)
+    bag = data_file("lsm-demo/demo_index_fixed.bag")
+    res = run_cli("run", str(bag), "--out", str(out), "--config", str(cfg), "--mapper", "gpfol", "--json")
+    assert res.returncode == 0, res.stderr
+    summary = check_run_folder(out)
+    assert summary["counts"]["scans"] == 360
+    after = read_layers_npz(out / "maps/after/layers.npz")
+    # a real map: confidently free and confidently occupied cells both exist
+    assert (after.probability < 0.35).mean() > 0.05 and (after.probability > 0.65).mean() > 0.005
+
+
+@pytest.mark.slow
+def test_run_on_intel(tmp_path) -> None:
+    out = tmp_path / "intel"
+    cfg = write_config(tmp_path / "fast.yaml", FAST_TRAINING)
+    res = run_cli(
+        "run",
+        str(data_file("intel/intel.clf.bz2")),
+        "--out",
+        str(out),
+        "--config",
+        str(cfg),
+        "--mapper",
+        "gpfol",
+    )
+    assert res.returncode == 0, res.stderr
+    summary = check_run_folder(out)
+    assert summary["counts"]["scans"] == 13_631 and summary["counts"]["loop_closures"] > 50
+    h, w = summary["map"]["shape_hw"]
+    assert 300 < h < 700 and 300 < w < 700  # the lab is about 40 m x 40 m at 0.1 m
+    assert os.path.getsize(out / "maps/after/occupancy.pgm") > h * w
+
+
+def test_run_summary_reports_its_tiles(loop_run) -> None:
+    summary = json.loads((loop_run / "summary.json").read_text())
+    tiles = summary["tiles"]
+    h, w = summary["map"]["shape_hw"]
+    t = tiles["tile_cells"]
+    assert tiles["count"] == -(-h // t) * -(-w // t) and tiles["engine"] == "serial"
+    assert 0 < tiles["support_beams_mean"]["after"] < summary["counts"]["beams"]
+
+
+@pytest.mark.slow
+def test_remap_after_a_local_correction_recomputes_only_the_tiles_it_reaches(loop_run, tmp_path) -> None:
+    """A loop-closure-like correction of part of the trajectory: the incremental remap (on a local Dask
+    cluster) equals a full serial recomputation bit for bit and re-renders a fraction of the tiles."""
+    from slam.trajectory_io import read_tum, write_tum
+
+    stamps, poses = read_tum(loop_run / "trajectory/optimized.tum")
+    first, last = 200, 240  # turn this stretch by 0.02 rad about its first pose
+    c, s = np.cos(0.02), np.sin(0.02)
+    d = poses[first : last + 1, :2] - poses[first, :2]
+    poses[first : last + 1, :2] = poses[first, :2] + d @ np.array([[c, -s], [s, c]]).T
+    poses[first : last + 1, 2] += 0.02
+    write_tum(tmp_path / "stretch.tum", stamps[first : last + 1], poses[first : last + 1])
+    # the other lines stay as they are: reading and writing a TUM file changes the last bits of the yaws
+    lines = (loop_run / "trajectory/optimized.tum").read_text().splitlines(keepends=True)
+    body = [i for i, line in enumerate(lines) if not line.startswith("#")]
+    stretch = (tmp_path / "stretch.tum").read_text().splitlines(keepends=True)
+    new = [line for line in stretch if not line.startswith("#")]
+    for i, line in zip(body[first : last + 1], new, strict=True):
+        lines[i] = line
+    (tmp_path / "corrected.tum").write_text("".join(lines))
+    runs = {}
+    for name, extra in (("incremental", ["--scheduler", "local"]), ("full", ["--recompute"])):
+        res = run_cli(
+            "remap", str(loop_run), "--poses", str(tmp_path / "corrected.tum"), "--out", str(tmp_path / name),
+            "--json", *extra,
+        )  # fmt: skip
+        assert res.returncode == 0, res.stderr
+        runs[name] = json.loads(res.stdout)
+    inc, full = runs["incremental"]["tiles"], runs["full"]["tiles"]
+    assert inc["incremental"] and inc["engine"] == "dask-local" and not full["incremental"]
+    assert full["fraction_recomputed"] == 1.0
+    # a 30 m laser sees most of this 80 m x 50 m world from the stretch: a third of the tiles
+    assert 0 < inc["fraction_recomputed"] < 0.6 and inc["tiles_total"] == full["tiles_total"]
+    assert inc["changed_beams"] == 41 * 360
+    a = read_layers_npz(tmp_path / "incremental/maps/remap/layers.npz")
+    b = read_layers_npz(tmp_path / "full/maps/remap/layers.npz")
+    assert_same_map(a, b)
+    after = read_layers_npz(loop_run / "maps/after/layers.npz")
+    assert not np.array_equal(a.probability, after.probability)

@@ -1,0 +1,74 @@
+"""The Dask engine (issue 8): a local cluster of two worker processes renders the Intel map (intel.gfs.log,
+corrected poses, 0.1 m) identically to the serial path and to the untiled map; a bad scheduler address is one
+clear error."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from datasets.registry import open_dataset
+from mapping.config import MappingConfig
+from mapping.gpmap import GPOccupancyMap
+from mapping.tiling import IncrementalMap, TileGrid
+from pipeline.errors import PipelineError
+from pipeline.evaluate_map import make_beams, reference_laser_poses
+from pipeline.scale import DaskEngine, GPMapFactory, ScaleConfig, tile_engine
+from tests.conftest import data_file
+from tests.layer_checks import assert_same_map
+from tests.test_scale import LAYER_NAMES, PARAMS, corridor_scans, make
+
+
+@pytest.fixture(scope="module")
+def intel_beams():
+    path = data_file("intel/intel.gfs.log")
+    rec = open_dataset(path)
+    cfg = MappingConfig(mapper="gpfol")
+    return make_beams(rec, reference_laser_poses(rec, path), np.arange(len(rec.scans)), cfg), cfg
+
+
+@pytest.mark.slow
+def test_local_cluster_renders_the_intel_map_like_the_serial_path(intel_beams) -> None:
+    beams, cfg = intel_beams
+    bounds = beams.bounds_xy_m(1.0)
+    grid = TileGrid.from_bounds(bounds, 0.1, 64)
+    factory = GPMapFactory(PARAMS, cfg, "gpfol")
+    serial = IncrementalMap(beams, grid, factory, cfg.k_occupied, cfg.k_free)
+    serial.render_all()
+    with tile_engine(ScaleConfig(scheduler="local", workers=2, threads_per_worker=1)) as engine:
+        assert isinstance(engine, DaskEngine) and len(engine.client.scheduler_info()["workers"]) == 2
+        distributed = IncrementalMap(beams, grid, factory, cfg.k_occupied, cfg.k_free, renderer=engine)
+        report = distributed.render_all()
+    assert report.tiles_recomputed == len(grid) == 42
+    untiled = GPOccupancyMap(beams, PARAMS, cfg.k_occupied, cfg.k_free).render(bounds, 0.1)
+    a, b = serial.layers(), distributed.layers()
+    assert a.shape == untiled.shape == (380, 407)
+    for name in LAYER_NAMES:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)  # the same code path
+    assert_same_map(a, untiled)  # another code path: see tests/layer_checks.py
+    assert 0.05 < np.mean(a.probability < 0.35) and 0.01 < np.mean(a.probability > 0.65)  # a real map
+
+
+def test_a_cluster_by_address_renders_like_the_serial_path() -> None:
+    from distributed import LocalCluster
+
+    beams, bounds = make(*corridor_scans()), (0.0, 0.0, 60.0, 20.0)
+    cfg = MappingConfig(mapper="gpfol")
+    grid = TileGrid.from_bounds(bounds, 0.2, 32)
+    factory = GPMapFactory(PARAMS, cfg, "gpfol")
+    serial = IncrementalMap(beams, grid, factory, cfg.k_occupied, cfg.k_free)
+    serial.render_all()
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=None) as cluster:
+        with tile_engine(ScaleConfig(scheduler=cluster.scheduler_address)) as engine:
+            remote = IncrementalMap(beams, grid, factory, cfg.k_occupied, cfg.k_free, renderer=engine)
+            remote.render_all()
+            moved = beams.subset(np.arange(len(beams)))  # an update through the same engine
+            assert remote.update_poses(moved).tiles_recomputed == 0
+    for name in LAYER_NAMES:
+        np.testing.assert_array_equal(getattr(serial.layers(), name), getattr(remote.layers(), name))
+
+
+def test_unreachable_scheduler_is_one_clear_error() -> None:
+    with pytest.raises(PipelineError, match=r"cannot reach the Dask scheduler 'tcp://127\.0\.0\.1:9'"):
+        with tile_engine(ScaleConfig(scheduler="tcp://127.0.0.1:9", connect_timeout_s=1)):
+            pass
