@@ -126,9 +126,7 @@ def scan_normals(
     """
     pts = np.ascontiguousarray(points_xy, dtype=np.float64)
     vp = np.zeros(2) if viewpoint_xy is None else np.asarray(viewpoint_xy, dtype=np.float64)
-    return _scan_normals(
-        pts, float(radius_m), int(max_half_window), float(max_flatness), int(min_points), vp
-    )
+    return _scan_normals(pts, float(radius_m), int(max_half_window), float(max_flatness), int(min_points), vp)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -140,9 +138,7 @@ def _insert_points(
     nearest: NDArray[np.int32],
     d2: NDArray[np.float32],
     score: NDArray[np.float32],
-    cell_sums: NDArray[np.float32],
     points: FloatArray,
-    normals: FloatArray,
     first_index: int,
     x0: float,
     y0: float,
@@ -162,15 +158,6 @@ def _insert_points(
         iy = math.floor((py - y0) / res)
         if ix + rc < 0 or iy + rc < 0 or ix - rc >= w or iy - rc >= h:
             continue
-        if 0 <= ix < w and 0 <= iy < h:
-            # the cell's surface: sums of the point offsets from the cell centre and of the normals
-            cell_sums[iy, ix, 0] += px - (x0 + (ix + 0.5) * res)
-            cell_sums[iy, ix, 1] += py - (y0 + (iy + 0.5) * res)
-            cell_sums[iy, ix, 2] += 1.0
-            if normals[k, 0] == normals[k, 0]:
-                cell_sums[iy, ix, 3] += normals[k, 0]
-                cell_sums[iy, ix, 4] += normals[k, 1]
-                cell_sums[iy, ix, 5] += 1.0
         touched[0] = min(touched[0], max(0, iy - rc))
         touched[1] = max(touched[1], min(h, iy + rc + 1))
         touched[2] = min(touched[2], max(0, ix - rc))
@@ -211,9 +198,6 @@ class PointGrid:
         self.nearest = np.full(shape, -1, dtype=np.int32)
         self._d2 = np.full(shape, np.inf, dtype=np.float32)
         self.score = np.zeros(shape, dtype=np.float32)
-        # per cell: sums of the offsets of its points from the cell centre (x, y), their count, sums of
-        # their normals (x, y) and the count of points with a normal
-        self.cell_sums = np.zeros((*shape, 6), dtype=np.float32)
         self._points = np.empty((1024, 2))
         self._normals = np.empty((1024, 2))
         self._count = 0
@@ -229,7 +213,6 @@ class PointGrid:
             self.nearest[r0:r1, c0:c1] = -1
             self._d2[r0:r1, c0:c1] = np.inf
             self.score[r0:r1, c0:c1] = 0.0
-            self.cell_sums[r0:r1, c0:c1] = 0.0
         self._touched[:] = (self.shape[0], 0, self.shape[1], 0)
         self.origin_xy_m = np.asarray(origin_xy_m, dtype=np.float64).copy()
         self._count = 0
@@ -305,9 +288,7 @@ class PointGrid:
             self.nearest,
             self._d2,
             self.score,
-            self.cell_sums,
             pts,
-            nrm,
             self._count,
             float(self.origin_xy_m[0]),
             float(self.origin_xy_m[1]),
@@ -448,161 +429,6 @@ def correlative_search(
     return SearchResult(best_pose, best_score / n)
 
 
-@nb.njit(cache=True)
-def _csm_volume(
-    score: NDArray[np.float32],
-    x0: float,
-    y0: float,
-    res: float,
-    points: FloatArray,
-    cx: float,
-    cy: float,
-    ctheta: float,
-    n_lin: int,
-    n_ang: int,
-    ang_step: float,
-) -> FloatArray:
-    """Summed score of the points at every pose of the window: (2 n_ang + 1, 2 n_lin + 1, 2 n_lin + 1),
-    indexed (rotation, y, x)."""
-    h, w = score.shape
-    p = points.shape[0]
-    out = np.zeros((2 * n_ang + 1, 2 * n_lin + 1, 2 * n_lin + 1))
-    ixs = np.empty(p, dtype=np.int64)
-    iys = np.empty(p, dtype=np.int64)
-    for a in range(-n_ang, n_ang + 1):
-        th = ctheta + a * ang_step
-        c = math.cos(th)
-        s = math.sin(th)
-        for k in range(p):
-            qx = c * points[k, 0] - s * points[k, 1] + cx
-            qy = s * points[k, 0] + c * points[k, 1] + cy
-            ixs[k] = math.floor((qx - x0) / res)
-            iys[k] = math.floor((qy - y0) / res)
-        for dy in range(-n_lin, n_lin + 1):
-            for dx in range(-n_lin, n_lin + 1):
-                tot = 0.0
-                for k in range(p):
-                    jx = ixs[k] + dx
-                    jy = iys[k] + dy
-                    if 0 <= jx < w and 0 <= jy < h:
-                        tot += score[jy, jx]
-                out[a + n_ang, dy + n_lin, dx + n_lin] = tot
-    return out
-
-
-@dataclass(frozen=True)
-class Posterior:
-    """Result of :func:`correlative_posterior` (world frame, order x, y, theta).
-
-    ``mode_xytheta`` is the best pose of the window, ``mean_xytheta`` / ``cov_xytheta`` (3, 3) the moments of
-    the posterior over the window (Olson 2009, section IV: ``Sigma = K / s - u u^T / s^2``), with the
-    variance of a uniform cell added per axis (the window is sampled on cells, the truth lies anywhere
-    within one); ``score`` is the mean per-point score at the mode, in [0, 1].
-    ``edge`` is True when the mode lies on the window's border (the window may not hold the posterior).
-    """
-
-    mode_xytheta: FloatArray
-    mean_xytheta: FloatArray
-    cov_xytheta: FloatArray
-    score: float
-    edge: bool
-
-
-def correlative_posterior(
-    grid: PointGrid,
-    points_xy: FloatArray,
-    center_xytheta: FloatArray,
-    window_xy_m: float,
-    window_theta_rad: float,
-    theta_step_rad: float,
-    prior_xytheta: FloatArray | None = None,
-    prior_information: FloatArray | None = None,
-    point_sigma_scale: float = 1.0,
-) -> Posterior:
-    """The posterior of the pose over a window of poses around ``center_xytheta`` (Olson 2009).
-
-    Every pose of the window (translations on the grid's cells, rotations ``theta_step_rad`` apart) gets
-    the log-likelihood ``sum_i s_i / point_sigma_scale^2`` of the transformed points, ``s_i`` the grid score
-    ``exp(-d_i^2 / 2 sigma^2)``: near a match ``s_i ~ 1 - d_i^2 / 2 sigma^2``, a Gaussian of standard deviation
-    ``sigma * point_sigma_scale`` per point, bounded for points that match nothing. The motion prior
-    (``prior_xytheta``, (3, 3) world-frame ``prior_information``) multiplies it: the posterior of Olson's
-    probabilistic formulation, which stays where the prior puts it along directions the scan does not fix
-    (a corridor's axis) and whose spread is an honest covariance there. ``points_xy`` should hold about one
-    point per cell (:func:`thin_points`): denser points repeat the same map errors.
-    """
-    pts = np.ascontiguousarray(points_xy, dtype=np.float64)
-    res = grid.resolution_m
-    c = np.asarray(center_xytheta, dtype=np.float64)
-    n_lin = max(1, math.ceil(window_xy_m / res))
-    n_ang = max(1, math.ceil(window_theta_rad / theta_step_rad))
-    vol = _csm_volume(
-        grid.score,
-        float(grid.origin_xy_m[0]),
-        float(grid.origin_xy_m[1]),
-        res,
-        pts,
-        c[0],
-        c[1],
-        c[2],
-        n_lin,
-        n_ang,
-        theta_step_rad,
-    )
-    logp = vol / point_sigma_scale**2
-    th = np.arange(-n_ang, n_ang + 1) * theta_step_rad
-    d = np.arange(-n_lin, n_lin + 1) * res
-    if prior_xytheta is not None and prior_information is not None:
-        pr = np.asarray(prior_xytheta, dtype=np.float64)
-        info = np.asarray(prior_information, dtype=np.float64)
-        ex = (c[0] + d - pr[0])[None, None, :]
-        ey = (c[1] + d - pr[1])[None, :, None]
-        et = ((c[2] - pr[2] + np.pi) % (2 * np.pi) - np.pi + th)[:, None, None]
-        q = (
-            info[0, 0] * ex * ex
-            + info[1, 1] * ey * ey
-            + info[2, 2] * et * et
-            + 2 * info[0, 1] * ex * ey
-            + 2 * info[0, 2] * ex * et
-            + 2 * info[1, 2] * ey * et
-        )
-        logp = logp - 0.5 * q
-    best = np.unravel_index(int(np.argmax(logp)), logp.shape)
-    w = np.exp(logp - logp[best])
-    w /= w.sum()
-    wt = w.sum(axis=(1, 2))
-    wy = w.sum(axis=(0, 2))
-    wx = w.sum(axis=(0, 1))
-    m = np.array([wx @ d, wy @ d, wt @ th])
-    cov = np.empty((3, 3))
-    cov[0, 0] = wx @ (d - m[0]) ** 2
-    cov[1, 1] = wy @ (d - m[1]) ** 2
-    cov[2, 2] = wt @ (th - m[2]) ** 2
-    cov[0, 1] = cov[1, 0] = float(np.einsum("yx,y,x->", w.sum(axis=0), d - m[1], d - m[0]))
-    cov[0, 2] = cov[2, 0] = float(np.einsum("tx,t,x->", w.sum(axis=1), th - m[2], d - m[0]))
-    cov[1, 2] = cov[2, 1] = float(np.einsum("ty,t,y->", w.sum(axis=2), th - m[2], d - m[1]))
-    cov += np.diag([res**2 / 12, res**2 / 12, theta_step_rad**2 / 12])
-    mode = c + np.array([d[best[2]], d[best[1]], th[best[0]]])
-    mean = c + m
-    mode[2] = (mode[2] + np.pi) % (2 * np.pi) - np.pi
-    mean[2] = (mean[2] + np.pi) % (2 * np.pi) - np.pi
-    edge = bool(
-        best[0] in (0, 2 * n_ang) or best[1] in (0, 2 * n_lin) or best[2] in (0, 2 * n_lin)
-    )
-    n = max(pts.shape[0], 1)
-    return Posterior(mode, mean, cov, float(vol[best]) / n, edge)
-
-
-def thin_points(points_xy: FloatArray, voxel_m: float) -> NDArray[np.int64]:
-    """Indices of the first point in each occupied ``voxel_m`` square (in input order)."""
-    if points_xy.shape[0] == 0:
-        return np.zeros(0, dtype=np.int64)
-    cells = np.floor(points_xy / voxel_m).astype(np.int64)
-    cells -= cells.min(axis=0)
-    keys = cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]
-    _, first = np.unique(keys, return_index=True)
-    return np.sort(first)
-
-
 # ---------------------------------------------------------------------------------------------------------
 # Point-to-line Gauss-Newton
 
@@ -615,14 +441,14 @@ def _accumulate(
     res: float,
     map_pts: FloatArray,
     map_nrm: FloatArray,
-    cell_sums: NDArray[np.float32],
-    pool: int,
     points: FloatArray,
+    point_nrm: FloatArray,
     pose: FloatArray,
     max_dist: float,
     kernel: float,
 ):
     h, w = nearest.shape
+    use_nrm = point_nrm.shape[0] == points.shape[0]
     c = math.cos(pose[2])
     s = math.sin(pose[2])
     hess = np.zeros((3, 3))
@@ -644,45 +470,21 @@ def _accumulate(
         m = nearest[jy, jx]
         if m < 0:
             continue
+        nx = map_nrm[m, 0]
+        ny = map_nrm[m, 1]
+        if nx != nx:  # NaN normal
+            continue
+        if use_nrm:
+            # the two faces of a thin wall: the point's normal (facing its sensor) points away from the
+            # map normal (facing the sensors that saw the other face)
+            px = point_nrm[k, 0]
+            py = point_nrm[k, 1]
+            if (c * px - s * py) * nx + (s * px + c * py) * ny < 0.0:
+                continue
         ex = qx - map_pts[m, 0]
         ey = qy - map_pts[m, 1]
         if ex * ex + ey * ey > md2:
             continue
-        if pool < 0:
-            # the nearest map point and its own normal
-            nx = map_nrm[m, 0]
-            ny = map_nrm[m, 1]
-            if nx != nx:  # NaN normal
-                continue
-        else:
-            # the surface of the nearest point's cell (and its neighbours): mean point, mean normal
-            mx = math.floor((map_pts[m, 0] - x0) / res)
-            my = math.floor((map_pts[m, 1] - y0) / res)
-            sx = 0.0
-            sy = 0.0
-            sc = 0.0
-            snx = 0.0
-            sny = 0.0
-            sn = 0.0
-            for cy in range(max(0, my - pool), min(h, my + pool + 1)):
-                for cx in range(max(0, mx - pool), min(w, mx + pool + 1)):
-                    cnt = cell_sums[cy, cx, 2]
-                    if cnt > 0:
-                        sx += cell_sums[cy, cx, 0] + cnt * (x0 + (cx + 0.5) * res)
-                        sy += cell_sums[cy, cx, 1] + cnt * (y0 + (cy + 0.5) * res)
-                        sc += cnt
-                        snx += cell_sums[cy, cx, 3]
-                        sny += cell_sums[cy, cx, 4]
-                        sn += cell_sums[cy, cx, 5]
-            if sn < 1.0:
-                continue
-            nn = math.sqrt(snx * snx + sny * sny)
-            if nn < 0.8 * sn:  # normals disagree (a corner, both sides of a thin object)
-                continue
-            nx = snx / nn
-            ny = sny / nn
-            ex = qx - sx / sc
-            ey = qy - sy / sc
         r = nx * ex + ny * ey
         # Cauchy weight
         u = r / kernel
@@ -734,9 +536,8 @@ def _gauss_newton(
     res: float,
     map_pts: FloatArray,
     map_nrm: FloatArray,
-    cell_sums: NDArray[np.float32],
-    pool: int,
     points: FloatArray,
+    point_nrm: FloatArray,
     pose0: FloatArray,
     max_dist: float,
     kernel: float,
@@ -751,7 +552,7 @@ def _gauss_newton(
     for _ in range(max_iterations):
         iterations += 1
         hess, grad, n_in, _, _, _ = _accumulate(
-            nearest, x0, y0, res, map_pts, map_nrm, cell_sums, pool, points, x, max_dist, kernel
+            nearest, x0, y0, res, map_pts, map_nrm, points, point_nrm, x, max_dist, kernel
         )
         a = hess * inv_s2 + prior_info
         e0 = x[0] - prior[0]
@@ -773,7 +574,7 @@ def _gauss_newton(
         if abs(step[0]) + abs(step[1]) < tolerance and abs(step[2]) < tolerance:
             break
     hess, _, n_in, sum_r2, sum_w, _ = _accumulate(
-        nearest, x0, y0, res, map_pts, map_nrm, cell_sums, pool, points, x, max_dist, kernel
+        nearest, x0, y0, res, map_pts, map_nrm, points, point_nrm, x, max_dist, kernel
     )
     rms = math.sqrt(sum_r2 / sum_w) if sum_w > 0 else np.inf
     return x, hess, n_in, rms, iterations
@@ -790,7 +591,7 @@ def refine_point_to_line(
     prior_information: FloatArray | None = None,
     max_iterations: int = 30,
     tolerance: float = 1e-6,
-    surface_pool: int = int(__import__("os").environ.get("POOL", "-1")),
+    normals_xy: FloatArray | None = None,
 ) -> Alignment:
     """Robust Gauss-Newton on point-to-line residuals, from ``initial_xytheta``.
 
@@ -798,9 +599,16 @@ def refine_point_to_line(
     Cauchy ``rho`` of scale ``kernel_m``; ``m_j`` is the map point nearest to the transformed point (within
     ``max_dist_m``) and ``n_j`` its normal. The prior (e.g. the wheel-odometry prediction, ``Lambda`` its
     (3, 3) world-frame information) keeps directions the scan does not constrain (a corridor's axis) where
-    the wheels put them.
+    the wheels put them. ``normals_xy`` (P, 2), the points' normals facing their sensor (NaN: unknown), makes
+    a point skip a map point whose normal faces the other way: the far face of a thin wall seen from the
+    other side (a nearest-neighbour match to it drags the scan by the wall's thickness).
     """
     pts = np.ascontiguousarray(points_xy, dtype=np.float64)
+    nrm = (
+        np.zeros((0, 2))
+        if normals_xy is None
+        else np.ascontiguousarray(normals_xy, dtype=np.float64).reshape(pts.shape[0], 2)
+    )
     x0 = np.asarray(initial_xytheta, dtype=np.float64)
     if prior_xytheta is None or prior_information is None:
         prior = np.zeros(3)
@@ -815,9 +623,8 @@ def refine_point_to_line(
         grid.resolution_m,
         grid.points_xy,
         grid.normals_xy,
-        grid.cell_sums,
-        int(surface_pool),
         pts,
+        nrm,
         x0,
         float(max_dist_m),
         float(kernel_m),

@@ -26,15 +26,7 @@ from datasets.simulation.geometry import (
     wall_with_gaps,
 )
 from datasets.simulation.recording import Platform, SimulatedRun, assemble, scan_platforms
-from datasets.simulation.sensors import (
-    LaserArtifacts,
-    LaserSpec,
-    OdometryNoise,
-    SmoothPath,
-    compose,
-    drift_odometry,
-    simulate_ranges,
-)
+from datasets.simulation.sensors import LaserSpec, OdometryNoise, SmoothPath, drift_odometry
 from datasets.types import Trajectory
 
 #: Start of every simulated recording (2012-01-01T00:00:00Z, the year of the paper), ns.
@@ -341,46 +333,23 @@ def make_two_platform(seed: int = 0, resolution_m: float = 0.1) -> SimulatedRun:
 
 # ------------------------------------------------------------------------------------------------ loop
 # Building-local layout; the world frame puts the robot's start at the origin, heading +x.
-LOOP_SIZE = (124.0, 52.0)
-LOOP_CORRIDOR_M = 3.0
-LOOP_MIDDLE_X = (60.5, 63.5)  # the north-south corridor between the two halves of the floor
-LOOP_GLASS_X = (18.0, 106.0)  # the glazed stretch of the south facade
-LOOP_START_LOCAL = (40.0, 1.5)
-# a figure eight: the east ring, down the middle corridor, the west ring, down the middle corridor again
-LOOP_ROUTE_LOCAL = (
-    (40.0, 1.5),
-    (122.5, 1.5),
-    (122.5, 50.5),
-    (62.0, 50.5),
-    (62.0, 1.5),
-    (1.5, 1.5),
-    (1.5, 50.5),
-    (62.0, 50.5),
-    (62.0, 1.5),
-    (78.0, 1.5),
-)
-#: Hokuyo UTM-30LX: 270 deg in 0.25 deg steps (1,081 beams), 0.1-30 m, about 3 cm range noise; returns lost
-#: at grazing incidence, mixed pixels at depth edges, a few outliers and dropouts.
+LOOP_SIZE = (120.0, 50.0)
+LOOP_GLASS_X = (10.0, 110.0)  # the glazed stretch of the south facade
+LOOP_LOBBY_PILLARS_X = (12.0, 18.0, 24.0)
+LOOP_START_LOCAL = (20.0, 7.0)
+LOOP_ROUTE_LOCAL = ((20.0, 7.0), (113.0, 7.0), (113.0, 43.0), (7.0, 43.0), (7.0, 7.0), (45.0, 7.0))
 LOOP_LASER = LaserSpec.sweep(
     "/scan",
-    1081,
-    270.0,
+    360,
+    360.0,
     range_min_m=0.1,
     range_max_m=30.0,
-    range_variance_m2=0.03**2,
+    range_variance_m2=1e-4,
     bearing_variance_rad2=0.0,
     rate_hz=2.0,
-    artifacts=LaserArtifacts(
-        max_incidence_rad=float(np.deg2rad(82.0)),
-        incidence_fade_rad=float(np.deg2rad(12.0)),
-        mixed_pixel_jump_m=0.3,
-        mixed_pixel_probability=0.5,
-        outlier_probability=0.002,
-        dropout_probability=0.01,
-    ),
 )
-LOOP_LASER_IN_BASE = np.array([0.15, 0.0, 0.0])
 TRANSPARENT_KINDS = ("glass",)  # occupied in the ground truth, invisible to the laser
+LOOP_LASER_IN_BASE = np.array([0.15, 0.0, 0.0])
 LOOP_SPEED_MPS = 1.0
 LOOP_ODOM_RATE_HZ = 20.0
 LOOP_SCAN_OFFSET_NS = 13_000_000  # scans are not synchronised with odometry
@@ -389,7 +358,7 @@ LOOP_ODOMETRY_NOISE = OdometryNoise(
     lateral_variance_m2_per_m=0.005**2,
     rotation_variance_rad2_per_rad=0.02**2,
     rotation_variance_rad2_per_m=0.002**2,
-    distance_scale_error=0.01,
+    distance_scale_error=0.02,
     rotation_scale_error=0.01,
     yaw_bias_rad_per_m=0.0003,
 )
@@ -437,54 +406,60 @@ def _rooms_along(
 
 
 def loop_world(seed: int = 0) -> World:
-    """A lab floor of 124 m x 52 m: a ring of 3 m corridors around two blocks, split by a middle corridor.
+    """An office floor of 120 m x 50 m: a ring of 3 m corridors around a core, and a 12.5 m x 120 m
+    gallery along the south facade.
 
-    The south corridor runs 120 m between a glazed facade (``glass``: no laser returns) and the smooth wall
-    of closed labs, with nothing across it but the middle corridor's mouth: along most of it a 30 m scanner
-    that loses the walls at grazing incidence sees nothing that fixes its position along the corridor.
-    The other corridors have rooms with open and closed doors (north, middle), cabinets (west) or columns
-    (east); rooms have furniture.
+    The north, west and east corridors have rooms with open and closed doors, furniture, wall columns and
+    cabinets, and a chamfered corner. The gallery runs between a glazed facade (``glass``: occupied in the
+    ground truth, no laser returns) and the smooth blank wall of the core's closed labs, with nothing in
+    it: beyond 30 m from both of its ends a scan fixes the robot across the gallery and its heading, but
+    not its position along it, which only the wheels measure there.
     """
     layout = _rng(LAYOUT_SEED, 0, 3)
     dressing = _rng(seed, _DRESSING, 3)
     b = _Builder()
     w, h = LOOP_SIZE
-    c = LOOP_CORRIDOR_M
-    mx0, mx1 = LOOP_MIDDLE_X
     gx0, gx1 = LOOP_GLASS_X
     # outer walls; the south facade is glazed in its middle part
-    for p, q in (((w, 0), (w, h)), ((w, h), (0, h)), ((0, h), (0, 0))):
+    outer = (((w, 0), (w, h)), ((w, h), (0, h)), ((0, h), (0, 0)), ((0, 0), (gx0, 0)), ((gx1, 0), (w, 0)))
+    for p, q in outer:
         b.add(wall(p, q, 0.3), "wall")
-    b.add(wall((0.0, 0.0), (gx0, 0.0), 0.3), "wall")
-    b.add(wall((gx1, 0.0), (w, 0.0), 0.3), "wall")
-    b.add(box(gx0, -0.02, gx1, 0.02), "glass")
-    # the blocks' smooth walls on the south corridor, the west and the east corridors
-    b.add(wall((c, c), (mx0, c), 0.2), "wall")
-    b.add(wall((mx1, c), (w - c, c), 0.2), "wall")
-    b.add(wall((c, c), (c, h - c), 0.2), "wall")
-    b.add(wall((w - c, c), (w - c, h - c), 0.2), "wall")
-    # rooms on the north corridor and on both sides of the middle corridor; closed labs behind them
-    back_y = h - c - 8.0
-    _rooms_along(b, layout, dressing, ((c, h - c), (mx0, h - c)), back_y, "x")
-    _rooms_along(b, layout, dressing, ((mx1, h - c), (w - c, h - c)), back_y, "x")
-    _rooms_along(b, layout, dressing, ((mx0, c), (mx0, back_y)), mx0 - 7.5, "y")
-    _rooms_along(b, layout, dressing, ((mx1, c), (mx1, back_y)), mx1 + 7.5, "y")
-    for p, q in (
-        ((c, back_y), (mx0, back_y)),
-        ((mx1, back_y), (w - c, back_y)),
-        ((mx0 - 7.5, c), (mx0 - 7.5, back_y)),
-        ((mx1 + 7.5, c), (mx1 + 7.5, back_y)),
-        ((mx0, back_y), (mx0, h - c)),
-        ((mx1, back_y), (mx1, h - c)),
-    ):
+    b.add(box(gx0, -0.1, gx1, 0.1), "glass")  # panes and mullions: 0.2 m deep, so that it rasterises
+    # outer rooms (north, west, east), their doors open on the corridor
+    _rooms_along(b, layout, dressing, ((5.5, 44.5), (w - 5.5, 44.5)), h, "x")
+    _rooms_along(b, layout, dressing, ((5.5, 12.5), (5.5, 44.5)), 0.0, "y")
+    _rooms_along(b, layout, dressing, ((w - 5.5, 12.5), (w - 5.5, 44.5)), w, "y")
+    b.add(wall((0.0, 12.5), (5.5, 12.5), 0.2), "wall")
+    b.add(wall((w - 5.5, 12.5), (w, 12.5), 0.2), "wall")
+    # core: inner rooms on the north, west and east corridors, closed labs behind the gallery's blank wall
+    b.add(wall((8.5, 12.5), (w - 8.5, 12.5), 0.2), "wall")
+    _rooms_along(b, layout, dressing, ((8.5, 41.5), (w - 8.5, 41.5)), 35.5, "x")
+    _rooms_along(b, layout, dressing, ((8.5, 18.5), (8.5, 35.5)), 14.5, "y")
+    _rooms_along(b, layout, dressing, ((w - 8.5, 18.5), (w - 8.5, 35.5)), w - 14.5, "y")
+    for p, q in (((8.5, 18.5), (w - 8.5, 18.5)), ((w - 14.5, 18.5), (w - 14.5, 35.5))):
         b.add(wall(p, q, 0.3), "wall")
-    # cabinets along the west corridor, columns along the east corridor, benches at the ends of the south one
-    for y in np.arange(8.0, h - 8.0, 8.0) + layout.uniform(-1.5, 1.5, len(np.arange(8.0, h - 8.0, 8.0))):
-        b.add(box(c - 0.1 - 0.45, y, c - 0.1, y + 1.2), "cabinet")
-    for y in np.arange(7.0, h - 6.0, 9.0) + layout.uniform(-1.0, 1.0, len(np.arange(7.0, h - 6.0, 9.0))):
-        b.add(box(w - c + 0.1, y, w - c + 0.1 + 0.35, y + 0.4), "column")
-    for x in (6.0, 11.0, w - 9.0):
-        b.add(box(x, 0.15, x + 2.0, 0.6), "bench")
+    for p, q in (((w - 14.5, 35.5), (14.5, 35.5)), ((14.5, 35.5), (14.5, 18.5))):
+        b.add(wall(p, q, 0.3), "wall")
+    for p, q in (((8.5, 12.5), (8.5, 18.5)), ((w - 8.5, 12.5), (w - 8.5, 18.5))):
+        b.add(wall(p, q, 0.2), "wall")
+    # irregular corridor walls: columns and cabinets against the walls, a chamfered corner
+    xs = np.arange(10.0, w - 10.0, 7.0)
+    for x in xs + layout.uniform(-1.5, 1.5, len(xs)):
+        b.add(box(x, 44.5 - 0.1 - 0.35, x + 0.4, 44.5 - 0.1), "column")
+    for y in np.arange(16.0, 40.0, 8.0) + layout.uniform(-1.0, 1.0, 3):
+        b.add(box(8.5 + 0.1, y, 8.5 + 0.1 + 0.45, y + 1.2), "cabinet")
+    for y in np.arange(20.0, 42.0, 9.0) + layout.uniform(-1.0, 1.0, 3):
+        b.add(box(w - 5.5 - 0.1 - 0.3, y, w - 5.5 - 0.1, y + 0.4), "column")
+    b.add(wall((w - 11.5, 41.4), (w - 8.6, 38.5), 0.2), "wall")
+    # the gallery's west end is a lobby with two rows of pillars, square and round
+    for k, x in enumerate(LOOP_LOBBY_PILLARS_X):
+        for y in (3.5, 10.0):
+            if k % 2 == 0:
+                b.add(box(x - 0.3, y - 0.3, x + 0.3, y + 0.3), "pillar")
+            else:
+                b.add(regular_polygon((x, y), 0.35, 12), "pillar")
+    for x in (2.0, w - 4.0):  # benches at the gallery's ends
+        b.add(box(x, 0.15, x + 2.0, 0.65), "bench")
     local = World("loop", tuple(b.polygons), tuple(b.kinds), (0.0, 0.0, w, h))
     sx, sy = LOOP_START_LOCAL
     return World(
@@ -513,12 +488,10 @@ def _wiggle(path: SmoothPath, s: FloatArray, amplitude_m: float, wavelength_m: f
 
 
 def make_loop(seed: int = 0, resolution_m: float = 0.1) -> SimulatedRun:
-    """A ~480 m figure eight through the lab floor at 1 m/s: Hokuyo UTM-30LX-like scans at 2 Hz
-    (:data:`LOOP_LASER`), wheel odometry at 20 Hz with drift (:data:`LOOP_ODOMETRY_NOISE`).
-
-    The route closes loops where its two rings meet (the middle corridor is driven twice) and where it
-    comes back along its first metres. Glass gives no returns (the beams go through: nothing outside).
-    """
+    """A ~310 m loop through the office floor at 1 m/s: 360-beam 30 m scans at 2 Hz, wheel odometry at 20 Hz
+    with drift (:data:`LOOP_ODOMETRY_NOISE`, 2 % scale error), the last 25 m (through the lobby) driven
+    twice so the loop can be closed. Glass gives no returns (the beams go through: nothing outside), so
+    along the middle of the gallery only the wheels measure the travel."""
     world = loop_world(seed)
     sx, sy = LOOP_START_LOCAL
     path = SmoothPath([(x - sx, y - sy) for x, y in LOOP_ROUTE_LOCAL], corner_radius_m=1.2)
@@ -549,9 +522,8 @@ def make_loop(seed: int = 0, resolution_m: float = 0.1) -> SimulatedRun:
         tuple(k for k in world.kinds if k not in TRANSPARENT_KINDS),
         world.bounds_xy_m,
     )
-    laser_poses = compose(scan_poses, LOOP_LASER_IN_BASE[None, :])
-    ranges = simulate_ranges(opaque.edges(), laser_poses, LOOP_LASER, _rng(seed, _LASER, 0))
-    return assemble("loop", seed, world, [robot], [ranges], resolution_m)
+    ranges = scan_platforms(opaque, [robot], [_rng(seed, _LASER, 0)])
+    return assemble("loop", seed, world, [robot], ranges, resolution_m)
 
 
 # ------------------------------------------------------------------------------------------------- api
