@@ -135,14 +135,18 @@ def select_scans(first_poses: np.ndarray, laser_in_base: np.ndarray, cfg) -> np.
 
 
 def tiles_summary(maps: dict[str, IncrementalMap], config: Config) -> dict[str, Any]:
-    """``summary.json["tiles"]``: the tiling and the engine of the maps."""
+    """``summary.json["tiles"]``: the tiling and the engine of the maps. ``rendering`` is ``"whole map"``
+    when the serial engine rendered each map at once (then no tile has its own support: the per-tile figures
+    are None), else ``"tile by tile"``."""
     first = next(iter(maps.values()))
+    whole = all(not m.support_beams.any() for m in maps.values())
     return {
         "tile_cells": config.scale.tile_cells,
         "count": len(first.grid),
         "engine": engine_name(config.scale),
-        "support_beams_mean": {k: float(np.mean(m.support_beams)) for k, m in maps.items()},
-        "tile_seconds_sum": {k: float(np.sum(m.tile_seconds)) for k, m in maps.items()},
+        "rendering": "whole map" if whole else "tile by tile",
+        "support_beams_mean": None if whole else {k: float(m.support_beams.mean()) for k, m in maps.items()},
+        "tile_seconds_sum": None if whole else {k: float(m.tile_seconds.sum()) for k, m in maps.items()},
     }
 
 
