@@ -97,6 +97,12 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("input", type=Path, help="a simulated bag (with INPUT.gt.npz) or a recording")
     q.add_argument("--seed", type=int, action="append", help="seed(s) of the hold-out split (default: 0-4)")
     q.add_argument("--config", type=Path, help="YAML configuration")
+    q.add_argument("--scan-topic", help="LaserScan topic of a bag (default: auto-detect); 'all': every one")
+    q.add_argument(
+        "--perturb-poses",
+        metavar="SIGMA_XY_M,SIGMA_THETA_RAD",
+        help="map from seeded noisy poses (GPPOL gets their covariance), score against the true ones",
+    )
     _add_json(q)
     q = ev.add_parser("slam", help="relations error and ATE of the SLAM trajectory")
     q.add_argument("input", type=Path, help="recording with odometry and scans")

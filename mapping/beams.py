@@ -8,14 +8,17 @@ The free training point for a query ``x*`` is the point of a segment closest to 
 segment). The free part of a segment can stop ``free_margin_m`` short of its endpoint so that a query just
 behind a wall is not given a free point lying on the wall's own occupied endpoint.
 
-For GPPOL (issue 5) each beam keeps what the unscented transform needs: its measured range and bearing in
-the laser frame and the index of its scan (whose pose and pose covariance the caller holds).
+For GPPOL (issue 5) each beam keeps what the unscented transform (:mod:`mapping.unscented`) needs: its
+measured range and bearing in the laser frame, the laser's heading, the laser mounting on the base (so that
+the
+base pose, whose covariance SLAM gives, is recovered exactly), the index of its scan (the caller's pose
+covariances are indexed by it) and its sensor (per-source noise settings).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba as nb
 import numpy as np
@@ -36,7 +39,10 @@ class Beams:
     - ``ranges_m`` (M,), ``bearings_rad`` (M,): the measurement in the laser frame (no-return beams carry the
       free length as range);
     - ``scan_index`` (M,) int32: index of the scan in the caller's sequence; ``beam_index`` (M,) int32: index
-      of the beam within its scan; ``source_index`` (M,) int32: sensor of the scan.
+      of the beam within its scan; ``source_index`` (M,) int32: sensor of the scan;
+    - ``laser_theta_rad`` (M,): heading of the laser at the scan (world frame);
+    - ``laser_in_base_xytheta`` (3,): the laser mounting on the base (one for all beams);
+    - ``source_names``: names of the sensors that ``source_index`` points into (e.g. scan topics).
     """
 
     origins_xy_m: FloatArray
@@ -48,6 +54,9 @@ class Beams:
     scan_index: NDArray[np.int32]
     beam_index: NDArray[np.int32]
     source_index: NDArray[np.int32]
+    laser_theta_rad: FloatArray
+    laser_in_base_xytheta: FloatArray = field(default_factory=lambda: np.zeros(3))
+    source_names: tuple[str, ...] = ("laser",)
 
     def __len__(self) -> int:
         return int(self.is_hit.shape[0])
@@ -82,7 +91,19 @@ class Beams:
             scan_index=self.scan_index[m],
             beam_index=self.beam_index[m],
             source_index=self.source_index[m],
+            laser_theta_rad=self.laser_theta_rad[m],
+            laser_in_base_xytheta=self.laser_in_base_xytheta,
+            source_names=self.source_names,
         )
+
+    def base_poses_xytheta(self) -> FloatArray:
+        """(M, 3) world pose of the base at each beam's scan (the laser pose with the mounting undone)."""
+        m = self.laser_in_base_xytheta
+        theta = self.laser_theta_rad - m[2]
+        c, s = np.cos(theta), np.sin(theta)
+        x = self.origins_xy_m[:, 0] - (c * m[0] - s * m[1])
+        y = self.origins_xy_m[:, 1] - (s * m[0] + c * m[1])
+        return np.stack([x, y, theta], axis=1)
 
 
 def select_scans_by_motion(
@@ -146,6 +167,7 @@ def beams_from_scans(
     free_margin_m: float = 0.0,
     source_index: NDArray | None = None,
     scan_indices: Sequence[int] | NDArray | None = None,
+    source_names: Sequence[str] | None = None,
 ) -> Beams:
     """World-frame beams of N scans.
 
@@ -154,7 +176,8 @@ def beams_from_scans(
     ``laser_in_base_xytheta`` (3,): laser mounting (default: the laser is the base). No-return beams give a
     free segment of ``no_return_free_length_m`` (None: the scan's ``range_max``; 0 drops them) and no
     endpoint. ``scan_indices`` (N,) numbers
-    the scans (default 0..N-1), e.g. their indices in a longer sequence.
+    the scans (default 0..N-1), e.g. their indices in a longer sequence; ``source_names`` names the sensors
+    ``source_index`` (N,) points into.
     """
     n = len(ranges_m)
     poses = np.asarray(poses_xytheta, dtype=np.float64).reshape(-1, 3)
@@ -167,8 +190,9 @@ def beams_from_scans(
     src = np.zeros(n, np.int32) if source_index is None else np.asarray(source_index, np.int32).reshape(n)
     sidx = np.arange(n) if scan_indices is None else np.asarray(scan_indices, dtype=np.int64).reshape(n)
     counts = np.array([len(r) for r in ranges_m], dtype=np.int64)
+    names = tuple(source_names) if source_names is not None else ("laser",)
     if n == 0 or counts.sum() == 0:
-        return _empty_beams()
+        return _empty_beams(mount, names)
     r = np.concatenate([np.asarray(x, dtype=np.float64) for x in ranges_m])
     a = np.concatenate([np.asarray(x, dtype=np.float64) for x in angles_rad])
     scan_of = np.repeat(np.arange(n), counts)
@@ -205,6 +229,9 @@ def beams_from_scans(
         scan_index=sidx[scan_of].astype(np.int32),
         beam_index=beam_of,
         source_index=src[scan_of],
+        laser_theta_rad=pose[:, 2].copy(),
+        laser_in_base_xytheta=mount.copy(),
+        source_names=names,
     )
 
 
@@ -229,11 +256,13 @@ def beams_from_scan_sequence(
         free_margin_m=free_margin_m,
         source_index=getattr(scans, "source_index", None),
         scan_indices=scan_indices,
+        source_names=getattr(scans, "sources", None),
     )
 
 
-def _empty_beams() -> Beams:
+def _empty_beams(mount: FloatArray | None = None, names: tuple[str, ...] = ("laser",)) -> Beams:
     z2 = np.zeros((0, 2))
     z = np.zeros(0)
     zi = np.zeros(0, np.int32)
-    return Beams(z2, z2, z2, np.zeros(0, bool), z, z, zi, zi, zi)
+    m = np.zeros(3) if mount is None else np.asarray(mount, np.float64).copy()
+    return Beams(z2, z2, z2, np.zeros(0, bool), z, z, zi, zi, zi, z, m, names)

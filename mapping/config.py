@@ -26,6 +26,15 @@ class GridBaselineConfig(BaseModel):
     )
 
 
+class SourceNoiseConfig(BaseModel):
+    """Measurement noise of one laser (GPPOL): variances of its range and bearing readings."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    range_var_m2: float = Field(1e-4, ge=0, le=100, description="range variance (m^2)")
+    bearing_var_rad2: float = Field(3e-6, ge=0, le=1, description="bearing variance (rad^2)")
+
+
 class MappingConfig(BaseModel):
     """GP occupancy-map settings (paper defaults where the paper gives one)."""
 
@@ -92,12 +101,50 @@ class MappingConfig(BaseModel):
     train_seed: int = Field(0, ge=0, description="seed of the training subsample and of the annealer")
     grid: GridBaselineConfig = Field(default_factory=GridBaselineConfig)
 
+    # --- GPPOL (issue 5): training inputs are Gaussians (paper section 3.6) -----------------------------
+    gppol_kernel: Literal["nn", "se", "matern32", "matern52"] = Field(
+        "se",
+        description="covariance function of GPPOL (GPFOL uses 'kernel'); SE integrates in closed form "
+        "(eq. 19), the others by Gauss-Hermite quadrature (eq. 23)",
+    )
+    gppol_expectation: Literal["auto", "girard", "gauss_hermite", "sigma_points"] = Field(
+        "auto",
+        description="how the kernel is integrated over the inputs: Girard's closed form (SE only), "
+        "Gauss-Hermite quadrature (gppol_gh_level), the 5-node sigma-point rule, or auto (Girard for SE, "
+        "else Gauss-Hermite)",
+    )
+    gppol_gh_level: int = Field(
+        3, ge=1, le=10, description="Gauss-Hermite nodes per input dimension (1: the kernel at the means)"
+    )
+    default_source: SourceNoiseConfig = Field(
+        default_factory=SourceNoiseConfig,
+        description="laser noise of sources not named in 'sources' (default: 1 cm range, 0.1 deg bearing)",
+    )
+    sources: dict[str, SourceNoiseConfig] = Field(
+        default_factory=dict,
+        description="laser noise per source (scan topic, e.g. '/platform_2/scan'), so that several "
+        "platforms fuse",
+    )
+    gppol_free_range_noise: bool = Field(
+        True,
+        description="free points get the range variance too (Algorithm 3, steps 5-8); false: only bearing "
+        "and "
+        "pose noise (the free point's distance along the beam is chosen, not measured)",
+    )
+    ut_alpha: float = Field(0.3, gt=0, le=10, description="unscented transform spread (the paper's xi)")
+    ut_beta: float = Field(2.0, ge=0, le=10, description="unscented transform beta (2: Gaussian)")
+    ut_kappa: float = Field(0.0, ge=0, le=10, description="unscented transform kappa")
+
     @model_validator(mode="after")
     def _thresholds_ordered(self) -> MappingConfig:
         if not self.free_threshold < self.occupied_threshold:
             raise ValueError(
                 f"free_threshold ({self.free_threshold}) must be below occupied_threshold "
                 f"({self.occupied_threshold})"
+            )
+        if self.gppol_expectation == "girard" and self.gppol_kernel != "se":
+            raise ValueError(
+                f"gppol_expectation 'girard' is the SE kernel's closed form, not {self.gppol_kernel}"
             )
         for name, (lo, hi) in self.kernel_bounds.items():
             if not 0 < lo < hi:

@@ -300,6 +300,178 @@ def _forward_lanes(K, n, invd, b, out):
             out[i, lane] *= invd[i, lane]
 
 
+# ---------------------------------------------------------------------------------------------------------
+# GPPOL (paper section 3.6): training inputs are Gaussians N(rho_i, Sigma_i), the query is deterministic.
+# K_ij = E[k(x_i, x_j)] over independent draws (eq. 17), K_ii = E[k(x_i, x_i)] under one draw and
+# k*_i = E[k(x*, x_i)] over x_i only (SPEC section 5); see mapping.noisy_kernels for the numpy reference.
+# Covariances are packed (xx, xy, yy) in SL (n, 3, LANES).
+
+INPUTS_POINTS = 0  # GPFOL: deterministic training inputs
+INPUTS_GIRARD = 1  # GPPOL, SE kernel, Girard's closed form (eq. 19)
+INPUTS_GH_DIFFERENCE = 2  # GPPOL, stationary kernel, Gauss-Hermite over the difference x_i - x_j (eq. 23)
+INPUTS_GH_NODES = 3  # GPPOL, NN kernel, Gauss-Hermite nodes of both inputs (eq. 23)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, y):
+    """GPPOL training inputs centred on the query: means X (n, 2) and packed covariances S (n, 3).
+
+    ``occ_mom`` (H, 5): mean and covariance of each endpoint (cell order of the point index); ``seg_mom``
+    (M, 14): per beam ``a, b, C0, C1, C2, L`` of :class:`mapping.unscented.BeamMoments` and the length L of
+    its free part, so that the free point at t along the segment is at d = t L: ``rho = a + d b``,
+    ``Sigma = C0 + d C1 + d^2 C2`` (exact UT, Algorithm 3 steps 5-8)."""
+    for i in range(no):
+        j = ido[i]
+        X[i, 0] = occ_mom[j, 0] - qx
+        X[i, 1] = occ_mom[j, 1] - qy
+        S[i, 0] = occ_mom[j, 2]
+        S[i, 1] = occ_mom[j, 3]
+        S[i, 2] = occ_mom[j, 4]
+        y[i] = 1.0
+    for i in range(nf):
+        j = idf[i]
+        d = tf[i] * seg_mom[j, 13]
+        X[no + i, 0] = seg_mom[j, 0] + d * seg_mom[j, 2] - qx
+        X[no + i, 1] = seg_mom[j, 1] + d * seg_mom[j, 3] - qy
+        S[no + i, 0] = seg_mom[j, 4] + d * (seg_mom[j, 7] + d * seg_mom[j, 10])
+        S[no + i, 1] = seg_mom[j, 5] + d * (seg_mom[j, 8] + d * seg_mom[j, 11])
+        S[no + i, 2] = seg_mom[j, 6] + d * (seg_mom[j, 9] + d * seg_mom[j, 12])
+        y[no + i] = -1.0
+    return no + nf
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _girard_lanes(kp, XL, SL, mask, n, K, ks):
+    """Eq. (19) for the SE kernel (``kp = (sf2, 1/l^2)``): lower triangle of K[:n, :n, lane] and ks[:n, lane]
+    (Sigma_i + Sigma_j between training inputs, Sigma_i against the query at the origin; K_ii = sf2)."""
+    nlanes = XL.shape[2]
+    sf2 = kp[0]
+    ell2 = 1.0 / kp[1]
+    for i in range(n):
+        for j in range(i):
+            for lane in range(nlanes):
+                a00 = ell2 + SL[i, 0, lane] + SL[j, 0, lane]
+                a01 = SL[i, 1, lane] + SL[j, 1, lane]
+                a11 = ell2 + SL[i, 2, lane] + SL[j, 2, lane]
+                dx = XL[i, 0, lane] - XL[j, 0, lane]
+                dy = XL[i, 1, lane] - XL[j, 1, lane]
+                r = 1.0 / math.sqrt(a00 * a11 - a01 * a01)  # |L I + S|^(-1/2)
+                q = (dx * dx * a11 - 2.0 * dx * dy * a01 + dy * dy * a00) * (r * r)
+                K[i, j, lane] = sf2 * ell2 * r * math.exp(-0.5 * q) * (mask[i, lane] * mask[j, lane])
+        for lane in range(nlanes):
+            K[i, i, lane] = sf2 * mask[i, lane]
+            a00 = ell2 + SL[i, 0, lane]
+            a01 = SL[i, 1, lane]
+            a11 = ell2 + SL[i, 2, lane]
+            dx = XL[i, 0, lane]
+            dy = XL[i, 1, lane]
+            r = 1.0 / math.sqrt(a00 * a11 - a01 * a01)
+            q = (dx * dx * a11 - 2.0 * dx * dy * a01 + dy * dy * a00) * (r * r)
+            ks[i, lane] = sf2 * ell2 * r * math.exp(-0.5 * q) * mask[i, lane]
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True, inline="always")
+def _gh_difference_value(kid, c, gz, gw, dx, dy, s00, s01, s11):
+    """E[k(z)] / sf2, z ~ N((dx, dy), [[s00, s01], [s01, s11]]), by the tensor Gauss-Hermite rule (gz, gw)."""
+    l00 = math.sqrt(max(s00, 0.0))
+    l10 = s01 / l00 if l00 > 1e-150 else 0.0
+    l11 = math.sqrt(max(s11 - l10 * l10, 0.0))
+    acc = 0.0
+    for a in range(gw.shape[0]):
+        zx = dx + l00 * gz[a, 0]
+        zy = dy + l10 * gz[a, 0] + l11 * gz[a, 1]
+        acc += gw[a] * _stationary(kid, c, zx * zx + zy * zy)
+    return acc
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _gh_difference_lanes(kid, kp, XL, SL, mask, n, K, ks, gz, gw):
+    """Eq. (23) for a stationary kernel, as the 2-D integral over the difference of two independent inputs
+    (``x_i - x_j ~ N(rho_i - rho_j, Sigma_i + Sigma_j)``); K_ii = sf2 (one draw)."""
+    nlanes = XL.shape[2]
+    sf2 = kp[0]
+    c = kp[1]
+    for i in range(n):
+        for j in range(i):
+            for lane in range(nlanes):
+                v = _gh_difference_value(
+                    kid, c, gz, gw, XL[i, 0, lane] - XL[j, 0, lane], XL[i, 1, lane] - XL[j, 1, lane],
+                    SL[i, 0, lane] + SL[j, 0, lane], SL[i, 1, lane] + SL[j, 1, lane],
+                    SL[i, 2, lane] + SL[j, 2, lane],
+                )  # fmt: skip
+                K[i, j, lane] = sf2 * v * (mask[i, lane] * mask[j, lane])
+        for lane in range(nlanes):
+            K[i, i, lane] = sf2 * mask[i, lane]
+            v = _gh_difference_value(
+                kid, c, gz, gw, XL[i, 0, lane], XL[i, 1, lane], SL[i, 0, lane], SL[i, 1, lane], SL[i, 2, lane]
+            )
+            ks[i, lane] = sf2 * v * mask[i, lane]
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=True)
+def _gh_nodes_lanes(kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN):
+    """Eq. (23) for the NN kernel (eq. 7): nodes ``phi_ia = rho_i + chol(Sigma_i) z_a`` of every input
+    (PH (n, m, 2, LANES), their 1/sqrt(1 + c0 + c1 |phi|^2) in SN (n, m, LANES)); K_ij = sum_ab w_a w_b
+    k(phi_ia, phi_jb), K_ii = sum_a w_a k(phi_ia, phi_ia) (one draw), ks_i = sum_a w_a k(0, phi_ia)."""
+    nlanes = XL.shape[2]
+    m = gw.shape[0]
+    sf2 = kp[0]
+    c0 = kp[1]
+    c1 = kp[2]
+    sq = 1.0 / math.sqrt(1.0 + c0)
+    for i in range(n):
+        for lane in range(nlanes):
+            l00 = math.sqrt(max(SL[i, 0, lane], 0.0))
+            l10 = SL[i, 1, lane] / l00 if l00 > 1e-150 else 0.0
+            l11 = math.sqrt(max(SL[i, 2, lane] - l10 * l10, 0.0))
+            for a in range(m):
+                x = XL[i, 0, lane] + l00 * gz[a, 0]
+                y = XL[i, 1, lane] + l10 * gz[a, 0] + l11 * gz[a, 1]
+                PH[i, a, 0, lane] = x
+                PH[i, a, 1, lane] = y
+                SN[i, a, lane] = 1.0 / math.sqrt(1.0 + c0 + c1 * (x * x + y * y))
+    for i in range(n):
+        for j in range(i):
+            for lane in range(nlanes):
+                K[i, j, lane] = 0.0
+            for a in range(m):
+                for b in range(m):
+                    wab = gw[a] * gw[b]
+                    for lane in range(nlanes):
+                        arg = (
+                            c0
+                            + c1
+                            * (PH[i, a, 0, lane] * PH[j, b, 0, lane] + PH[i, a, 1, lane] * PH[j, b, 1, lane])
+                        ) * (SN[i, a, lane] * SN[j, b, lane])
+                        K[i, j, lane] += wab * asin_fast(min(max(arg, -1.0), 1.0))
+            for lane in range(nlanes):
+                K[i, j, lane] *= sf2 * (mask[i, lane] * mask[j, lane])
+        for lane in range(nlanes):
+            K[i, i, lane] = 0.0
+            ks[i, lane] = 0.0
+        for a in range(m):
+            for lane in range(nlanes):
+                x = PH[i, a, 0, lane]
+                y = PH[i, a, 1, lane]
+                s2 = SN[i, a, lane] * SN[i, a, lane]
+                K[i, i, lane] += gw[a] * asin_fast(min((c0 + c1 * (x * x + y * y)) * s2, 1.0))
+                ks[i, lane] += gw[a] * asin_fast(c0 * SN[i, a, lane] * sq)
+        for lane in range(nlanes):
+            K[i, i, lane] *= sf2 * mask[i, lane]
+            ks[i, lane] *= sf2 * mask[i, lane]
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _noisy_kernel_lanes(mode, kid, kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN):
+    """The GPPOL kernel blocks of ``mode`` (INPUTS_GIRARD, INPUTS_GH_DIFFERENCE or INPUTS_GH_NODES)."""
+    if mode == INPUTS_GIRARD:
+        _girard_lanes(kp, XL, SL, mask, n, K, ks)
+    elif mode == INPUTS_GH_DIFFERENCE:
+        _gh_difference_lanes(kid, kp, XL, SL, mask, n, K, ks, gz, gw)
+    else:
+        _gh_nodes_lanes(kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN)
+
+
 @nb.njit(cache=True, error_model="numpy", parallel=True)
 def predict_batch(
     queries,
@@ -320,11 +492,21 @@ def predict_batch(
     alpha,
     beta,
     chunk,
+    mode,
+    occ_mom,
+    seg_mom,
+    gz,
+    gw,
     out_mean,
     out_var,
     out_prob,
 ):
-    """GPFOL prediction at (Q, 2) ``queries``: writes mean (eq. 2), latent variance (eq. 3) and p(occ).
+    """GPFOL / GPPOL prediction at (Q, 2) ``queries``: writes mean (eq. 2), latent variance (eq. 3), p(occ).
+
+    ``mode`` INPUTS_POINTS is GPFOL; the GPPOL modes (INPUTS_GIRARD, INPUTS_GH_DIFFERENCE, INPUTS_GH_NODES)
+    read the input Gaussians from ``occ_mom`` (H, 5) and ``seg_mom`` (M, 14) (see :func:`_gaussian_inputs`;
+    empty arrays for GPFOL) and integrate the kernel over them with the Gauss-Hermite rule ``gz`` (m, 2)
+    standard nodes, ``gw`` (m,) weights summing to 1.
 
     ``pts`` (H, 2): occupied endpoints in cell order; ``seg`` (M, 5): free segments (start, direction,
     1/|d|^2) and ``ecopy`` their float32 copies per index entry; ``*_geom`` = (origin x, origin y, cell, nx,
@@ -344,8 +526,13 @@ def predict_batch(
         idf = np.empty(max(k_free, 1), np.int64)
         tf = np.empty(max(k_free, 1))
         X = np.empty((nmax, 2))
+        S = np.zeros((nmax, 3))
         y = np.empty(nmax)
         XL = np.zeros((nmax, 2, LANES))
+        SL = np.zeros((nmax, 3, LANES))
+        nodes = gw.shape[0] if mode == INPUTS_GH_NODES else 1
+        PH = np.empty((nmax, nodes, 2, LANES))
+        SN = np.empty((nmax, nodes, LANES))
         yL = np.zeros((nmax, LANES))
         mask = np.zeros((nmax, LANES))
         KL = np.empty((nmax, nmax, LANES))
@@ -396,7 +583,14 @@ def predict_batch(
                     warm_f[i] = idf[i]
                 n_warm_o = no
                 n_warm_f = nf
-                n = _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y)
+                if mode == INPUTS_POINTS:
+                    n = _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y)
+                else:
+                    n = _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, y)
+                    for i in range(n):
+                        SL[i, 0, lane] = S[i, 0]
+                        SL[i, 1, lane] = S[i, 1]
+                        SL[i, 2, lane] = S[i, 2]
                 counts[lane] = n
                 nfill = max(nfill, n)
                 for i in range(n):
@@ -414,9 +608,15 @@ def predict_batch(
                 for i in range(counts[lane], nfill):
                     XL[i, 0, lane] = 0.0
                     XL[i, 1, lane] = 0.0
+                    SL[i, 0, lane] = 0.0
+                    SL[i, 1, lane] = 0.0
+                    SL[i, 2, lane] = 0.0
                     yL[i, lane] = 0.0
                     mask[i, lane] = 0.0
-            _kernel_lanes(kid, kp, XL, mask, nfill, KL, ksL, sL)
+            if mode == INPUTS_POINTS:
+                _kernel_lanes(kid, kp, XL, mask, nfill, KL, ksL, sL)
+            else:
+                _noisy_kernel_lanes(mode, kid, kp, XL, SL, mask, nfill, KL, ksL, gz, gw, PH, SN)
             for i in range(nfill):
                 for lane in range(LANES):
                     KL[i, i, lane] += noise_var * mask[i, lane] + (1.0 - mask[i, lane])
@@ -440,11 +640,40 @@ def predict_batch(
                         X[i, 0] = XL[i, 0, lane]
                         X[i, 1] = XL[i, 1, lane]
                         y[i] = yL[i, lane]
-                    kss1 = _kernel_blocks(kid, kp, X, n, K, ks, s)
+                    if mode == INPUTS_POINTS:
+                        kss1 = _kernel_blocks(kid, kp, X, n, K, ks, s)
+                    else:
+                        kss1 = _noisy_kernel_single(mode, kid, kp, XL, SL, lane, n, K, ks, gz, gw)
                     mu, var = _solve_local(K, ks, kss1, y, n, noise_var, jitter, diag, v, w)
                 out_mean[q] = mu
                 out_var[q] = var
                 out_prob[q] = _phi((alpha * mu + beta) / math.sqrt(1.0 + alpha * alpha * (var + noise_var)))
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _noisy_kernel_single(mode, kid, kp, XL, SL, lane, n, K, ks, gz, gw):
+    """The GPPOL blocks of one lane of XL / SL into the full K[:n, :n] and ks[:n] (the fallback path);
+    returns k(x*, x*)."""
+    X1 = np.empty((n, 2, 1))
+    S1 = np.empty((n, 3, 1))
+    m1 = np.ones((n, 1))
+    for i in range(n):
+        X1[i, 0, 0] = XL[i, 0, lane]
+        X1[i, 1, 0] = XL[i, 1, lane]
+        for c in range(3):
+            S1[i, c, 0] = SL[i, c, lane]
+    K1 = np.empty((n, n, 1))
+    ks1 = np.empty((n, 1))
+    nodes = gw.shape[0] if mode == INPUTS_GH_NODES else 1
+    _noisy_kernel_lanes(
+        mode, kid, kp, X1, S1, m1, n, K1, ks1, gz, gw, np.empty((n, nodes, 2, 1)), np.empty((n, nodes, 1))
+    )
+    for i in range(n):
+        for j in range(i + 1):
+            K[i, j] = K1[i, j, 0]
+            K[j, i] = K1[i, j, 0]
+        ks[i] = ks1[i, 0]
+    return _prior_var(kid, kp)
 
 
 @nb.njit(cache=True, error_model="numpy")

@@ -14,6 +14,8 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from mapping.beams import Beams
+
 FloatArray = NDArray[np.float64]
 
 HOLDOUT_FRACTION = 0.1
@@ -98,3 +100,13 @@ def raster_cell_centres(shape: tuple[int, int], origin_xy_m: FloatArray, resolut
     ys = origin_xy_m[1] + (np.arange(h) + 0.5) * resolution_m
     gx, gy = np.meshgrid(xs, ys)
     return np.stack([gx.ravel(), gy.ravel()], axis=1)
+
+
+def observed_cells(
+    beams: Beams, bounds_xy_m: tuple[float, float, float, float], resolution_m: float
+) -> NDArray:
+    """(h, w) bool: the cells of the grid over ``bounds_xy_m`` at ``resolution_m`` (row 0 at the lowest y)
+    that at least one of ``beams`` crosses or ends in -- the cells a sensor observed."""
+    from mapping.grid import OccupancyGrid
+
+    return np.asarray(OccupancyGrid.build(beams, resolution_m, bounds_xy_m).log_odds != 0)

@@ -194,3 +194,60 @@ def plot_before_after_maps(
             ax.legend(loc="lower right", fontsize=7)
     fig.colorbar(im, ax=axes, label="p(occupied)", fraction=0.025, pad=0.02)
     return _finish(fig, path, dpi)
+
+
+def plot_method_rows(
+    rows: Mapping[str, MapLayers],
+    path: Path,
+    occupied_threshold: float = 0.65,
+    free_threshold: float = 0.35,
+    tracks_xy_m: Mapping[str, NDArray] | None = None,
+    width_in: float = 9.0,
+    dpi: int = 60,
+) -> Path:
+    """The paper's Figure 9: one row per method ``{name: layers}``, p(occupied) on the left and the
+    classified map on the right; ``tracks_xy_m`` ``{label: (N, 2)}`` drawn on the first probability panel."""
+    first = next(iter(rows.values()))
+    h, w = first.shape
+    n = len(rows)
+    fig, axes = plt.subplots(n, 2, figsize=(width_in, n * width_in / 2 * h / w + 0.6 * n), squeeze=False)
+    for k, (name, layers) in enumerate(rows.items()):
+        a0, a1 = axes[k]
+        a0.imshow(layers.probability, origin="lower", extent=_extent(layers), cmap="jet", vmin=0, vmax=1)
+        a0.set_title(f"({'abcdefgh'[k]}) {name}: p(occupied)", fontsize=9)
+        cls = classify(layers.probability, occupied_threshold, free_threshold)
+        a1.imshow(cls, origin="lower", extent=_extent(layers), **_CLASS_STYLE)
+        a1.set_title(f"{name}: classified (black occ., white free, grey unsure)", fontsize=9)
+        for ax in (a0, a1):
+            ax.tick_params(labelsize=7)
+    for (label, xy), colour in zip((tracks_xy_m or {}).items(), ("w", "m", "c"), strict=False):
+        axes[0, 0].plot(xy[:, 0], xy[:, 1], ".", color=colour, ms=1.5, label=label)
+    if tracks_xy_m:
+        axes[0, 0].legend(loc="lower right", fontsize=6, markerscale=4)
+    fig.tight_layout()
+    return _finish(fig, path, dpi)
+
+
+def plot_variance_pair(
+    layers: Mapping[str, MapLayers], path: Path, width_in: float = 10.0, dpi: int = 70
+) -> Path:
+    """The paper's Figure 10: the predictive variance of each method ``{name: layers}`` side by side, each
+    with its own colour bar (logarithmic, so that low variances of well-observed areas stay apart)."""
+    from matplotlib.colors import LogNorm
+
+    first = next(iter(layers.values()))
+    h, w = first.shape
+    n = len(layers)
+    fig, axes = plt.subplots(1, n, figsize=(width_in, width_in / n * h / w + 0.8), squeeze=False)
+    for k, (name, lay) in enumerate(layers.items()):
+        ax = axes[0, k]
+        v = np.asarray(lay.variance, dtype=np.float64)
+        norm = LogNorm(vmin=max(float(np.percentile(v, 0.5)), 1e-4), vmax=max(float(v.max()), 2e-4))
+        im = ax.imshow(
+            np.maximum(v, norm.vmin), origin="lower", extent=_extent(lay), cmap="viridis", norm=norm
+        )
+        fig.colorbar(im, ax=ax, fraction=0.03, pad=0.02)
+        ax.set_title(f"({'abcdefgh'[k]}) {name}: predictive variance (log scale)", fontsize=9)
+        ax.tick_params(labelsize=7)
+    fig.tight_layout()
+    return _finish(fig, path, dpi)

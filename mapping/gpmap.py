@@ -1,4 +1,5 @@
-"""The GP occupancy map (GPFOL, paper section 3.5, Algorithm 1): query anywhere, render any grid.
+"""The GP occupancy map: GPFOL (paper section 3.5, Algorithm 1) or, given Gaussian inputs, GPPOL (section
+3.6.3, Algorithm 3). Query anywhere, render any grid.
 
 Rendered maps are :class:`mapping.exports.MapLayers` (raster convention of that module: row 0 at the lowest
 y, ``origin_xy_m`` the lower-left corner of cell (0, 0)).
@@ -19,8 +20,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapping.beams import Beams
-from mapping.core import predict_batch
+from mapping.core import INPUTS_POINTS, predict_batch
 from mapping.exports import MapLayers
+from mapping.gppol import GaussianInputs
 from mapping.neighbours import BeamIndex
 from mapping.train import GPParams
 
@@ -70,7 +72,10 @@ def grid_centres(
 
 
 class GPOccupancyMap:
-    """GPFOL map over ``beams`` with learnt ``params``; ``k_occ`` + ``k_free`` neighbours per query."""
+    """GP map over ``beams`` with learnt ``params``; ``k_occ`` + ``k_free`` neighbours per query.
+
+    ``inputs`` (:class:`mapping.gppol.GaussianInputs`, the beams' input Gaussians) makes it GPPOL; without
+    it the training inputs are points (GPFOL)."""
 
     def __init__(
         self,
@@ -81,6 +86,7 @@ class GPOccupancyMap:
         jitter: float = 1e-8,
         index_cell_m: float | None = None,
         chunk: int = 256,
+        inputs: GaussianInputs | None = None,
     ) -> None:
         self.beams = beams
         self.params = params
@@ -90,8 +96,22 @@ class GPOccupancyMap:
         self.chunk = int(chunk)
         t0 = time.perf_counter()
         self.index = BeamIndex.build(beams, index_cell_m, index_cell_m)
+        self.inputs = inputs
+        if inputs is None:
+            self._mode = INPUTS_POINTS
+            self._gaussians = (np.zeros((0, 5)), np.zeros((0, 14)), np.zeros((1, 2)), np.ones(1))
+        else:
+            if len(inputs.moments) != len(beams):
+                raise ValueError(f"{len(inputs.moments)} input moments for {len(beams)} beams")
+            self._mode = inputs.core_mode(params.kernel)
+            self._gaussians = (*inputs.core_arrays(beams, self.index.hit_beam), *inputs.rule())
         self.index_seconds = time.perf_counter() - t0
         self.last_render_seconds = 0.0
+
+    @property
+    def mapper(self) -> str:
+        """``"gppol"`` (Gaussian training inputs) or ``"gpfol"``."""
+        return "gpfol" if self.inputs is None else "gppol"
 
     def bounds_xy_m(self, margin_m: float = 1.0) -> tuple[float, float, float, float]:
         """Bounds of the occupied endpoints and laser origins, grown by ``margin_m``."""
@@ -126,6 +146,8 @@ class GPOccupancyMap:
             self.params.alpha,
             self.params.beta,
             self.chunk,
+            self._mode,
+            *self._gaussians,
             mean,
             var,
             prob,

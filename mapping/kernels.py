@@ -35,6 +35,7 @@ class Kernel:
     name: ClassVar[str] = "kernel"
     names: ClassVar[tuple[str, ...]] = ()
     default_bounds: ClassVar[tuple[tuple[float, float], ...]] = ()
+    stationary: ClassVar[bool] = True  # a function of x - y only
 
     def __post_init__(self) -> None:
         vals = tuple(float(v) for v in self.values)
@@ -88,6 +89,19 @@ class Kernel:
         """(kernel id, parameters) for :func:`mapping.core.predict_batch`."""
         raise NotImplementedError
 
+    def of_difference(
+        self, D: FloatArray, eval_gradient: bool = False
+    ) -> FloatArray | tuple[FloatArray, FloatArray]:
+        """A stationary kernel as a function of the difference ``x - y``: (...,) values for (..., 2)
+        differences, and with ``eval_gradient`` the (..., P) gradient w.r.t. ``theta``."""
+        if not self.stationary:
+            raise ValueError(f"the {self.name} kernel is not stationary")
+        D = np.asarray(D, dtype=np.float64)
+        out = self._eval(D[..., None, :], np.zeros((1, D.shape[-1])), eval_gradient)
+        if not eval_gradient:
+            return out[..., 0, 0]
+        return out[0][..., 0, 0], out[1][..., 0, 0, :]
+
 
 def _sqdist(X: FloatArray, Y: FloatArray) -> FloatArray:
     d = X[..., :, None, :] - Y[..., None, :, :]
@@ -101,6 +115,7 @@ class NeuralNetworkKernel(Kernel):
 
     values: tuple[float, ...] = (1.0, 1.0, 3.0)
     name = "nn"
+    stationary = False
     names = ("sigma_f", "sigma_0", "sigma")
     default_bounds = ((1e-2, 1e2), (1e-2, 1e4), (1e-2, 1e5))
 

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from mapping.beams import Beams
 from mapping.core import gather_batch
 from mapping.index import GridIndex, build_point_index, build_segment_index, segment_entry_copies
+from mapping.unscented import BeamMoments, unpack_cov
 
 FloatArray = NDArray[np.float64]
 
@@ -153,3 +154,32 @@ class BeamIndex:
         X = np.concatenate([xo, xf], axis=1) - q[:, None, :]
         y = np.concatenate([np.ones((q.shape[0], k_occ)), -np.ones((q.shape[0], k_free))], axis=1)
         return X, y, full
+
+    def local_gaussians(
+        self,
+        queries_xy_m: FloatArray,
+        k_occ: int,
+        k_free: int,
+        moments: BeamMoments,
+        free_moments: BeamMoments | None = None,
+    ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+        """GPPOL local training sets of (Q, 2) queries: input means X (Q', n, 2) centred on each query, their
+        covariances (Q', n, 2, 2) from the per-beam UT ``moments`` (endpoints at d = range, free points at
+        d = t |free part|; ``free_moments`` for the free points if given), labels y (Q', n), for the Q'
+        queries
+        with a full neighbourhood (mask (Q,))."""
+        q = np.asarray(queries_xy_m, dtype=np.float64).reshape(-1, 2)
+        occ, free, t = self.gather(q, k_occ, k_free)
+        full = (occ >= 0).all(axis=1) & (free >= 0).all(axis=1)
+        occ, free, t, q = occ[full], free[full], t[full], q[full]
+        hb = self.hit_beam[occ]
+        d_occ = self.beams.ranges_m[hb]
+        free_len = np.sqrt(np.einsum("ij,ij->i", self.seg[:, 2:4], self.seg[:, 2:4]))
+        d_free = t * free_len[free]
+        fm = moments if free_moments is None else free_moments
+        X = np.concatenate([moments.mean_at(d_occ, hb), fm.mean_at(d_free, free)], axis=1) - q[:, None, :]
+        cov = unpack_cov(
+            np.concatenate([moments.packed_cov_at(d_occ, hb), fm.packed_cov_at(d_free, free)], 1)
+        )
+        y = np.concatenate([np.ones((q.shape[0], k_occ)), -np.ones((q.shape[0], k_free))], axis=1)
+        return X, cov, y, full

@@ -12,17 +12,28 @@ from numpy.typing import NDArray
 from scipy import optimize, special
 
 from mapping.kernels import Kernel
+from mapping.noisy_kernels import InputExpectation
 
 FloatArray = NDArray[np.float64]
 
 
 def loo_predictions(
-    kernel: Kernel, X: FloatArray, y: FloatArray, noise_var: float
+    kernel: Kernel,
+    X: FloatArray,
+    y: FloatArray,
+    noise_var: float,
+    cov: FloatArray | None = None,
+    expectation: InputExpectation | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Leave-one-out mean (eq. 11) and variance (eq. 12) of every training point of a batch of local problems
     X (Q, n, 2), y (Q, n): ``mu_i = y_i - [K^-1 y]_i / [K^-1]_ii``, ``var_i = 1 / [K^-1]_ii``, with
-    K including the noise variance. Returns two (Q, n) arrays."""
-    K = kernel(X) + noise_var * np.eye(X.shape[-2])
+    K including the noise variance (GPPOL: inputs N(X, cov (Q, n, 2, 2)), K integrated by ``expectation``).
+    Returns two (Q, n) arrays."""
+    if cov is None:
+        K = kernel(X)
+    else:
+        K = (expectation or InputExpectation()).matrix(kernel, X, cov)
+    K = K + noise_var * np.eye(X.shape[-2])
     Kinv = np.linalg.inv(K)
     d = np.einsum("...ii->...i", Kinv)
     a = np.einsum("...ij,...j->...i", Kinv, y)

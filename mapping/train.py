@@ -28,8 +28,10 @@ from numpy.typing import NDArray
 from scipy import optimize
 
 from mapping.beams import Beams
+from mapping.gppol import GaussianInputs
 from mapping.kernels import Kernel, make_kernel
 from mapping.neighbours import BeamIndex
+from mapping.noisy_kernels import InputExpectation
 from mapping.pls import fit_pls, loo_predictions
 
 FloatArray = NDArray[np.float64]
@@ -104,6 +106,20 @@ def sample_training_queries(beams: Beams, n: int, seed: int = 0, beyond: float =
     return p + rng.normal(scale=0.05, size=p.shape)
 
 
+def kernel_matrix(
+    kernel: Kernel,
+    X: FloatArray,
+    cov: FloatArray | None = None,
+    expectation: InputExpectation | None = None,
+    eval_gradient: bool = False,
+) -> FloatArray | tuple[FloatArray, FloatArray]:
+    """K (..., n, n) of the training inputs: points X (GPFOL), or Gaussians N(X, cov (..., n, 2, 2))
+    integrated by ``expectation`` (GPPOL, :mod:`mapping.noisy_kernels`)."""
+    if cov is None:
+        return kernel(X, eval_gradient=eval_gradient)
+    return (expectation or InputExpectation()).matrix(kernel, X, cov, eval_gradient)
+
+
 def log_marginal_likelihood(
     kernel: Kernel,
     X: FloatArray,
@@ -111,16 +127,19 @@ def log_marginal_likelihood(
     noise_var: float,
     eval_gradient: bool = False,
     noise_gradient: bool = False,
+    cov: FloatArray | None = None,
+    expectation: InputExpectation | None = None,
 ) -> float | tuple[float, FloatArray]:
     """Sum over the local problems X (Q, n, 2), y (Q, n) of eq. (9), and its gradient w.r.t. ``kernel.theta``
-    (with ``noise_gradient``, also w.r.t. ``log noise_var``, appended).
+    (with ``noise_gradient``, also w.r.t. ``log noise_var``, appended). GPPOL: the inputs are Gaussians with
+    covariances ``cov`` (Q, n, 2, 2), the kernel integrated over them by ``expectation``.
 
     Returns -inf (and a zero gradient) when a covariance matrix is not positive definite."""
     n = X.shape[-2]
     if eval_gradient:
-        K, dK = kernel(X, eval_gradient=True)
+        K, dK = kernel_matrix(kernel, X, cov, expectation, eval_gradient=True)
     else:
-        K = kernel(X)
+        K = kernel_matrix(kernel, X, cov, expectation)
     K = K + noise_var * np.eye(n)
     try:
         L = np.linalg.cholesky(K)
@@ -151,10 +170,13 @@ def train_hyperparameters(
     seed: int = 0,
     learn_noise: bool = False,
     noise_bounds: tuple[float, float] = (1e-4, 1.0),
+    cov: FloatArray | None = None,
+    expectation: InputExpectation | None = None,
 ) -> tuple[Kernel, float, dict[str, Any]]:
     """Maximise eq. (9) over the kernel's log hyperparameters (and ``log sigma_n^2`` if ``learn_noise``)
     within their bounds: dual annealing with ``maxfun`` evaluations (0 skips it), then L-BFGS-B with the
-    analytic gradient. Returns the trained kernel, the noise variance and a summary."""
+    analytic gradient. GPPOL: ``cov`` (Q, n, 2, 2) and ``expectation`` as in :func:`log_marginal_likelihood`.
+    Returns the trained kernel, the noise variance and a summary."""
     npts = X.shape[0] * X.shape[1]
     p = kernel.theta.shape[0]
     bounds = kernel.bounds
@@ -170,13 +192,15 @@ def train_hyperparameters(
     def neg(x: FloatArray) -> float:
         calls["anneal"] += 1
         k, nv = split(x)
-        v = log_marginal_likelihood(k, X, y, nv)
+        v = log_marginal_likelihood(k, X, y, nv, cov=cov, expectation=expectation)
         return 1e10 if not np.isfinite(v) else -v / npts
 
     def neg_grad(x: FloatArray) -> tuple[float, FloatArray]:
         calls["lbfgs"] += 1
         k, nv = split(x)
-        v, g = log_marginal_likelihood(k, X, y, nv, eval_gradient=True, noise_gradient=learn_noise)
+        v, g = log_marginal_likelihood(
+            k, X, y, nv, eval_gradient=True, noise_gradient=learn_noise, cov=cov, expectation=expectation
+        )
         if not np.isfinite(v):
             return 1e10, np.zeros_like(x)
         return -v / npts, -g / npts
@@ -220,21 +244,44 @@ def train_gp(
     seed: int = 0,
     index_cell_m: float | None = None,
     learn_noise: bool = False,
+    inputs: GaussianInputs | None = None,
 ) -> GPParams:
     """Learn kernel hyperparameters and the PLS link from the first ``n_scans`` distinct scans of ``beams``
-    (in their scan order)."""
+    (in their scan order). With ``inputs`` (the beams' input Gaussians) the GPPOL model is trained: eq. (9)
+    and the leave-one-out PLS fit (eqs. 10-12) with the kernel integrated over the inputs."""
     scans = np.unique(beams.scan_index)[:n_scans]
-    train_beams = beams.select_scans(scans)
+    keep = np.isin(beams.scan_index, scans)
+    train_beams = beams.subset(keep)
     index = BeamIndex.build(train_beams, index_cell_m, index_cell_m)
     queries = sample_training_queries(train_beams, n_problems, seed)
-    X, y, _ = index.local_problems(queries, k_occ, k_free)
+    cov = expectation = None
+    if inputs is None:
+        X, y, _ = index.local_problems(queries, k_occ, k_free)
+    else:
+        expectation = inputs.expectation
+        X, cov, y, _ = index.local_gaussians(
+            queries, k_occ, k_free, inputs.moments.subset(keep), inputs.free().subset(keep)
+        )
     if X.shape[0] == 0:
         raise ValueError(f"no training neighbourhood with {k_occ} + {k_free} neighbours in the first scans")
     kernel = make_kernel(kernel_name, kernel_values, kernel_bounds)
+    if expectation is not None:
+        expectation.check(kernel)
     trained, nv, info = train_hyperparameters(
-        kernel, X, y, noise_var, maxfun, maxiter, seed, learn_noise=learn_noise
+        kernel,
+        X,
+        y,
+        noise_var,
+        maxfun,
+        maxiter,
+        seed,
+        learn_noise=learn_noise,
+        cov=cov,
+        expectation=expectation,
     )
-    mu, var = loo_predictions(trained, X, y, nv)
+    mu, var = loo_predictions(trained, X, y, nv, cov, expectation)
     alpha, beta = fit_pls(mu, var, y)
     info.update({"scans": [int(scans[0]), int(scans[-1])], "n_scans": len(scans), "seed": seed})
+    if expectation is not None:
+        info["inputs"] = {"method": expectation.method, "level": expectation.level}
     return GPParams(trained, nv, alpha, beta, info)

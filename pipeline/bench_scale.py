@@ -157,7 +157,7 @@ def large_map_child(
     del ranges
     t_world = time.perf_counter() - t_start
     t0 = time.perf_counter()
-    params = fit_params(beams, cfg)
+    params = fit_params(beams, cfg, mapper="gpfol")
     t_train = time.perf_counter() - t0
     grid = TileGrid.from_bounds((0.0, 0.0, size_m, size_m), resolution_m, tile_cells)
     t0 = time.perf_counter()

@@ -171,7 +171,12 @@ def cmd_evaluate(args: argparse.Namespace, emit_json: EmitJson) -> int:
     if args.target == "map":
         evaluate_map = entry_point("evaluate map")
         result = evaluate_map(
-            input_path=args.input, seeds=args.seed, config_path=args.config, progress=progress
+            input_path=args.input,
+            seeds=args.seed,
+            config_path=args.config,
+            progress=progress,
+            perturb_poses=args.perturb_poses,
+            scan_topic=args.scan_topic,
         )
         return _report(result, args, emit_json, f"map evaluation of {args.input}")
     evaluate_slam = entry_point("evaluate slam")

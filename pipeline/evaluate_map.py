@@ -1,10 +1,22 @@
-"""``evaluate map INPUT``: AUC of the GP maps and of the occupancy-grid baseline (SPEC section 6).
+"""``evaluate map INPUT``: AUC of GPPOL, GPFOL and the occupancy-grid baseline (SPEC section 6).
 
 Ground-truth protocol when ``INPUT.gt.npz`` lies beside the input (simulated worlds: every cell of the
-raster scored), the hold-out protocol otherwise (blocks of scans held out, test points along their beams).
+raster scored; a world of several platforms is mapped from all their scan topics unless ``--scan-topic``
+says otherwise), the hold-out protocol otherwise (blocks of scans held out, test points along their beams).
 Maps are built from the input's reference poses; a recording without them is mapped on the optimised
-trajectory of the SLAM stage, and the output says so (``poses``). GPPOL lands with issue 5: its AUC is
-``None`` until then.
+trajectory of the SLAM stage, whose marginal covariances GPPOL then uses, and the output says so (``poses``).
+
+Input uncertainty given to GPPOL:
+
+- laser noise per source: on a simulated world, the noise the simulator used (the ground truth's ``sources``,
+  overriding ``mapping.sources``; the output says so), otherwise ``mapping.sources`` / ``default_source``;
+- pose covariance: zero for reference poses (taken as exact), the SLAM marginals for SLAM poses, and with
+  ``perturb_poses = (sigma_xy_m, sigma_theta_rad)`` (``--perturb-poses``, after the Hilbert-maps reference's
+  ``perturb_data``) ``diag(sigma_xy^2, sigma_xy^2, sigma_theta^2)`` for every scan. Perturbation: each scan's
+  reference BASE pose gets ``(sigma_xy, sigma_xy, sigma_theta) * z``, ``z`` the (N, 3) standard-normal draw of
+  ``numpy.random.default_rng(PERTURB_SEED_BASE + seed)`` (``seed`` the hold-out seed; 0 on the ground-truth
+  protocol), in scan order. Every mapper (GPPOL, GPFOL, grid) maps the perturbed poses; test points come from
+  the UNPERTURBED poses (the truth).
 """
 
 from __future__ import annotations
@@ -18,7 +30,7 @@ import numpy as np
 from datasets.errors import DatasetError
 from datasets.types import Recording
 from mapping.beams import Beams, compose_laser_poses
-from mapping.config import MappingConfig
+from mapping.config import MappingConfig, SourceNoiseConfig
 from mapping.evaluation import holdout_split, holdout_test_points, is_carmen_180, raster_cell_centres
 from mapping.metrics import roc_auc
 from pipeline import mapping_stage as ms
@@ -27,46 +39,129 @@ from pipeline.errors import PipelineError
 from pipeline.progress import Progress
 
 DEFAULT_SEEDS = [0, 1, 2, 3, 4]
+MAPPERS = ("gppol", "gpfol")
+PERTURB_SEED_BASE = 1_000_000
 
 
-def make_beams(rec: Recording, laser_poses: np.ndarray, indices: np.ndarray, cfg: MappingConfig) -> Beams:
-    """World-frame beams of the scans ``indices`` of ``rec`` at ``laser_poses`` (N, 3)."""
-    return ms.make_beams(rec.scans, laser_poses, np.zeros(3), cfg, indices)
+def make_beams(rec: Recording, base_poses: np.ndarray, indices: np.ndarray, cfg: MappingConfig) -> Beams:
+    """World-frame beams of the scans ``indices`` of ``rec`` at BASE poses ``base_poses`` (N, 3) (composed
+    with the recording's laser mounting)."""
+    return ms.make_beams(rec.scans, base_poses, rec.laser_in_base_xytheta, cfg, indices)
 
 
-def reference_laser_poses(rec: Recording, input_path: Path) -> np.ndarray:
-    """(N, 3) laser poses from the recording's reference poses (PipelineError when it has none)."""
+def reference_base_poses(rec: Recording, input_path: Path) -> np.ndarray:
+    """(N, 3) base poses of the scans from the recording's reference poses (PipelineError if it has none)."""
     if rec.scans is None or len(rec.scans) == 0:
         raise DatasetError(f"{input_path}: no laser scans to map")
     if rec.reference is None:
         raise PipelineError(f"{input_path}: no reference poses (ground truth or corrected log)")
     if len(rec.reference) != len(rec.scans):
         raise DatasetError(f"{input_path}: {len(rec.reference)} reference poses for {len(rec.scans)} scans")
-    return compose_laser_poses(rec.reference.poses_xytheta, rec.laser_in_base_xytheta)
+    return np.asarray(rec.reference.poses_xytheta, dtype=np.float64)
+
+
+def reference_laser_poses(rec: Recording, input_path: Path) -> np.ndarray:
+    """(N, 3) laser poses from the recording's reference poses (PipelineError if it has none)."""
+    return compose_laser_poses(reference_base_poses(rec, input_path), rec.laser_in_base_xytheta)
+
+
+def mapping_poses(
+    rec: Recording, input_path: Path, slam_config: Any = None, progress: Progress | None = None
+) -> tuple[np.ndarray, str, np.ndarray | None]:
+    """(N, 3) base poses to map with, where they come from, and their (N, 3, 3) world-frame covariances:
+    the reference poses when the recording has them (``"reference"``, taken as exact: None), else the
+    optimised trajectory of the SLAM stage and its marginals (``"slam"``, SPEC section 6)."""
+    if rec.scans is None or len(rec.scans) == 0:
+        raise DatasetError(f"{input_path}: no laser scans to map")
+    if rec.reference is not None:
+        return reference_base_poses(rec, input_path), "reference", None
+    from slam.system import run_slam_recording
+
+    result = run_slam_recording(rec, slam_config, progress)
+    return np.asarray(result.poses_after_xytheta), "slam", np.asarray(result.cov_after_xytheta)
 
 
 def mapping_laser_poses(
     rec: Recording, input_path: Path, slam_config: Any = None, progress: Progress | None = None
 ) -> tuple[np.ndarray, str]:
-    """(N, 3) laser poses to map with, and where they come from: the reference poses when the recording has
-    them (``"reference"``), else the optimised trajectory of the SLAM stage (``"slam"``, SPEC section 6)."""
-    if rec.scans is None or len(rec.scans) == 0:
-        raise DatasetError(f"{input_path}: no laser scans to map")
-    if rec.reference is not None:
-        return reference_laser_poses(rec, input_path), "reference"
-    from slam.system import run_slam_recording
+    """(N, 3) laser poses of :func:`mapping_poses` and where they come from."""
+    base, source, _ = mapping_poses(rec, input_path, slam_config, progress)
+    return compose_laser_poses(base, rec.laser_in_base_xytheta), source
 
-    result = run_slam_recording(rec, slam_config, progress)
-    return compose_laser_poses(result.poses_after_xytheta, rec.laser_in_base_xytheta), "slam"
+
+def perturb(
+    base_poses: np.ndarray, sigma_xy_m: float, sigma_theta_rad: float, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Poses (N, 3) with seeded Gaussian noise (module docstring), the (N, 3, 3) covariance given to GPPOL."""
+    n = base_poses.shape[0]
+    sigma = np.array([sigma_xy_m, sigma_xy_m, sigma_theta_rad], dtype=np.float64)
+    z = np.random.default_rng(PERTURB_SEED_BASE + seed).standard_normal((n, 3))
+    return base_poses + z * sigma, np.tile(np.diag(sigma**2), (n, 1, 1))
+
+
+def parse_perturbation(text: str | None) -> tuple[float, float] | None:
+    """``"SIGMA_XY_M,SIGMA_THETA_RAD"`` (None passes through); PipelineError if malformed."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 2 or not all(np.isfinite(v) and v >= 0 for v in values):
+        raise PipelineError(
+            f"--perturb-poses must be SIGMA_XY_M,SIGMA_THETA_RAD (two numbers >= 0), got {text!r}"
+        )
+    return values[0], values[1]
+
+
+def _map_and_score(
+    beams: Beams,
+    cov: np.ndarray | None,
+    cfg: MappingConfig,
+    points: np.ndarray,
+    labels: np.ndarray,
+    seed_offset: int,
+    grid_bounds: ms.Bounds | None,
+    sort: bool,
+) -> dict[str, Any]:
+    """Train and query GPPOL and GPFOL, build the grid, score the three; times and parameters."""
+    row: dict[str, Any] = {}
+    for mapper in MAPPERS:
+        t0 = time.perf_counter()
+        params = ms.fit_params(beams, cfg, seed_offset, mapper=mapper, cov_xytheta=cov)
+        t1 = time.perf_counter()
+        gp = ms.build_gp_map(beams, params, cfg, cov, mapper=mapper)
+        p = gp.query(points, sort=sort).probability
+        t2 = time.perf_counter()
+        row[f"auc_{mapper}"] = roc_auc(p, labels)
+        row[f"{mapper}_train_s"] = t1 - t0
+        row[f"{mapper}_map_and_query_s"] = t2 - t1
+        row[f"{mapper}_hyperparameters"] = {"kernel": params.kernel.name, **params.kernel.as_dict()}
+        row[f"{mapper}_params"] = params.to_dict()  # save as JSON and set mapping.params_file to reuse
+    t0 = time.perf_counter()
+    p_grid = ms.build_grid(beams, cfg, grid_bounds).query(points)
+    row["auc_grid"] = roc_auc(p_grid, labels)
+    row["grid_s"] = time.perf_counter() - t0
+    return row
 
 
 def evaluate_holdout(
-    rec: Recording, laser_poses: np.ndarray, seeds: list[int], cfg: MappingConfig, progress: Progress
+    rec: Recording,
+    base_poses: np.ndarray,
+    seeds: list[int],
+    cfg: MappingConfig,
+    progress: Progress,
+    cov: np.ndarray | None = None,
+    perturb_poses: tuple[float, float] | None = None,
 ) -> dict[str, Any]:
-    """The hold-out protocol of SPEC section 6 for GPFOL and the grid, one entry per seed."""
+    """The hold-out protocol of SPEC section 6 for GPPOL, GPFOL and the grid, one entry per seed.
+
+    ``cov`` (N, 3, 3): base-pose covariances for GPPOL (None: exact poses); ``perturb_poses``: see the
+    module docstring (then the covariance is the perturbation's)."""
     scans = rec.scans
     n = len(scans)
     carmen = rec.format == "carmen" and all(is_carmen_180(a) for a in scans.angles_rad[: min(n, 10)])
+    truth_laser = compose_laser_poses(base_poses, rec.laser_in_base_xytheta)
     per_seed = []
     with progress.stage("evaluate map", total=len(seeds)) as bar:
         for seed in seeds:
@@ -75,83 +170,77 @@ def evaluate_holdout(
                 raise PipelineError(f"{rec.source}: {n} scans are too few for the hold-out protocol (< 400)")
             train = np.setdiff1d(np.arange(n), held)
             pts, labels = holdout_test_points(
-                scans.ranges_m, scans.angles_rad, laser_poses, held.tolist(), seed, carmen_180=carmen
+                scans.ranges_m, scans.angles_rad, truth_laser, held.tolist(), seed, carmen_180=carmen
             )
-            beams = make_beams(rec, laser_poses, train, cfg)
-            t0 = time.perf_counter()
-            params = ms.fit_params(beams, cfg, seed_offset=seed)
-            t1 = time.perf_counter()
-            gp = ms.build_gp_map(beams, params, cfg, mapper="gpfol")
-            p_gp = gp.query(pts).probability
-            t2 = time.perf_counter()
-            grid = ms.build_grid(beams, cfg)
-            p_grid = grid.query(pts)
-            t3 = time.perf_counter()
-            per_seed.append(
-                {
-                    "seed": seed,
-                    "held_out_scans": int(held.size),
-                    "test_points": int(labels.size),
-                    "occupied_test_points": int(labels.sum()),
-                    "auc_gpfol": roc_auc(p_gp, labels),
-                    "auc_grid": roc_auc(p_grid, labels),
-                    "train_s": t1 - t0,
-                    "gpfol_map_and_query_s": t2 - t1,
-                    "grid_s": t3 - t2,
-                    "hyperparameters": params.kernel.as_dict(),
-                    "pls": {"alpha": params.alpha, "beta": params.beta},
-                    "params": params.to_dict(),  # save as JSON and set mapping.params_file to reuse
-                }
-            )
+            poses, seed_cov = base_poses, cov
+            if perturb_poses is not None:
+                poses, seed_cov = perturb(base_poses, *perturb_poses, seed)
+            beams = make_beams(rec, poses, train, cfg)
+            row = {
+                "seed": seed,
+                "held_out_scans": int(held.size),
+                "test_points": int(labels.size),
+                "occupied_test_points": int(labels.sum()),
+            }
+            row.update(_map_and_score(beams, seed_cov, cfg, pts, labels, seed, None, sort=True))
+            per_seed.append(row)
             bar.advance()
     return {"per_seed": per_seed}
 
 
+def ground_truth_noise(cfg: MappingConfig, gt: Any) -> MappingConfig:
+    """``cfg`` with the laser noise of every source the simulator recorded in the ground truth."""
+    if not gt.sources:
+        return cfg
+    sources = dict(cfg.sources)
+    for s in gt.sources:
+        sources[s.name] = SourceNoiseConfig(
+            range_var_m2=s.range_variance_m2, bearing_var_rad2=s.bearing_variance_rad2
+        )
+    return cfg.model_copy(update={"sources": sources})
+
+
 def evaluate_ground_truth(
-    rec: Recording, laser_poses: np.ndarray, gt_path: Path, cfg: MappingConfig, progress: Progress
+    rec: Recording,
+    base_poses: np.ndarray,
+    gt_path: Path,
+    cfg: MappingConfig,
+    progress: Progress,
+    cov: np.ndarray | None = None,
+    perturb_poses: tuple[float, float] | None = None,
+    every: int = 1,
 ) -> dict[str, Any]:
-    """Score every cell of the ground-truth raster ``gt_path`` (SPEC section 6, simulated worlds)."""
+    """Score the cells of the ground-truth raster ``gt_path`` (SPEC section 6, simulated worlds; ``every``
+    > 1 scores every ``every``-th row and column only, for quick checks).
+    Laser noise from the ground truth."""
     from datasets.simulation import load_ground_truth
 
     gt = load_ground_truth(gt_path)
+    cfg = ground_truth_noise(cfg, gt)
     occ = np.asarray(gt.occupancy).astype(bool)
     res = float(gt.resolution_m)
     origin = np.asarray(gt.origin_xy_m, dtype=np.float64)
-    with progress.stage("evaluate map", total=3) as bar:
-        beams = make_beams(rec, laser_poses, np.arange(len(rec.scans)), cfg)
-        t0 = time.perf_counter()
-        params = ms.fit_params(beams, cfg)
+    h, w = occ.shape
+    bounds = (origin[0], origin[1], origin[0] + w * res, origin[1] + h * res)
+    centres = raster_cell_centres(occ.shape, origin, res).reshape(h, w, 2)[::every, ::every].reshape(-1, 2)
+    labels = occ[::every, ::every].ravel()
+    poses = base_poses
+    if perturb_poses is not None:
+        poses, cov = perturb(base_poses, *perturb_poses, 0)
+    with progress.stage("evaluate map", total=1) as bar:
+        beams = make_beams(rec, poses, np.arange(len(rec.scans)), cfg)
+        row = {"seed": None, "test_points": int(labels.size), "occupied_test_points": int(labels.sum())}
+        row.update(_map_and_score(beams, cov, cfg, centres, labels, 0, bounds, sort=False))
         bar.advance()
-        t1 = time.perf_counter()
-        gp = ms.build_gp_map(beams, params, cfg, mapper="gpfol")
-        centres = raster_cell_centres(occ.shape, origin, res)
-        p_gp = gp.query(centres, sort=False).probability
-        bar.advance()
-        t2 = time.perf_counter()
-        h, w = occ.shape
-        bounds = (origin[0], origin[1], origin[0] + w * res, origin[1] + h * res)
-        grid = ms.build_grid(beams, cfg, bounds)
-        p_grid = grid.query(centres)
-        bar.advance()
-        t3 = time.perf_counter()
-    labels = occ.ravel()
-    return {
-        "per_seed": [
-            {
-                "seed": None,
-                "test_points": int(labels.size),
-                "occupied_test_points": int(labels.sum()),
-                "auc_gpfol": roc_auc(p_gp, labels),
-                "auc_grid": roc_auc(p_grid, labels),
-                "train_s": t1 - t0,
-                "gpfol_map_and_query_s": t2 - t1,
-                "grid_s": t3 - t2,
-                "hyperparameters": params.kernel.as_dict(),
-                "pls": {"alpha": params.alpha, "beta": params.beta},
-                "params": params.to_dict(),
-            }
-        ],
-    }
+    noise = {name: s.model_dump() for name, s in cfg.sources.items()}
+    return {"per_seed": [row], "sensor_noise": noise, "sensor_noise_from": str(gt_path)}
+
+
+def _ground_truth_sources(gt_path: Path) -> int:
+    """Number of laser sources the simulator recorded in the ground truth ``gt_path``."""
+    from datasets.simulation import load_ground_truth
+
+    return len(load_ground_truth(gt_path).sources or ())
 
 
 def evaluate_map(
@@ -159,48 +248,68 @@ def evaluate_map(
     seeds: list[int] | None = None,
     config_path: Path | None = None,
     progress: Progress | None = None,
+    perturb_poses: tuple[float, float] | str | None = None,
+    scan_topic: str | None = None,
 ) -> dict[str, Any]:
     """Evaluate the mappers on ``input_path``; returns the SPEC section 3 keys (``protocol``, ``seeds``,
-    ``auc``: {gppol, gpfol, grid} as means over seeds) plus ``per_seed`` details and a ``table``."""
+    ``auc``: {gppol, gpfol, grid} as means over seeds) plus ``per_seed`` details and a ``table``.
+
+    ``perturb_poses``: ``(sigma_xy_m, sigma_theta_rad)`` or its text form (module docstring)."""
     from datasets.registry import open_dataset
 
     progress = progress or Progress()
-    config = load_config(config_path)
-    cfg = config.mapping
+    if isinstance(perturb_poses, str):
+        perturb_poses = parse_perturbation(perturb_poses)
     input_path = Path(input_path)
-    rec = open_dataset(input_path, config.input)
-    laser_poses, pose_source = mapping_laser_poses(rec, input_path, config.slam, progress)
     gt_path = Path(str(input_path) + ".gt.npz")
+    if scan_topic is None and gt_path.is_file() and _ground_truth_sources(gt_path) > 1:
+        scan_topic = "all"  # a simulated world of several platforms is scored on all their scans
+    config = load_config(config_path, {"input": {"scan_topic": scan_topic}})
+    cfg = config.mapping
+    rec = open_dataset(input_path, config.input)
+    base_poses, pose_source, cov = mapping_poses(rec, input_path, config.slam, progress)
     if gt_path.is_file():
         protocol = "ground_truth"
         used_seeds: list[int] = []
-        out = evaluate_ground_truth(rec, laser_poses, gt_path, cfg, progress)
+        out = evaluate_ground_truth(rec, base_poses, gt_path, cfg, progress, cov, perturb_poses)
     else:
         protocol = "holdout"
         used_seeds = list(seeds) if seeds else list(DEFAULT_SEEDS)
-        out = evaluate_holdout(rec, laser_poses, used_seeds, cfg, progress)
+        out = evaluate_holdout(rec, base_poses, used_seeds, cfg, progress, cov, perturb_poses)
     rows = out["per_seed"]
-    auc = {
-        "gppol": None,
-        "gpfol": float(np.mean([r["auc_gpfol"] for r in rows])),
-        "grid": float(np.mean([r["auc_grid"] for r in rows])),
-    }
-    table = {
+    auc = {k: float(np.mean([r[f"auc_{k}"] for r in rows])) for k in ("gppol", "gpfol", "grid")}
+    if perturb_poses is not None:
+        pose_cov = f"diag({perturb_poses[0]}^2, {perturb_poses[0]}^2, {perturb_poses[1]}^2) (perturbed poses)"
+    elif cov is not None:
+        pose_cov = "SLAM marginals"
+    else:
+        pose_cov = "none (exact reference poses)"
+    table: dict[str, Any] = {
         "protocol": protocol,
         "seeds": ",".join(map(str, used_seeds)) or "-",
         "poses": "the input's reference poses" if pose_source == "reference" else "SLAM (no reference)",
+        "perturbation": "-" if perturb_poses is None else f"{perturb_poses[0]} m, {perturb_poses[1]} rad",
+        "GPPOL pose covariance": pose_cov,
+        "GPPOL laser noise": "simulator's (ground truth)" if "sensor_noise_from" in out else "configuration",
     }
-    table.update({f"AUC {k}": ("not available (issue 5)" if v is None else v) for k, v in auc.items()})
+    table.update({f"AUC {k}": v for k, v in auc.items()})
     for r in rows:
         tag = "" if r["seed"] is None else f" seed {r['seed']}"
-        table[f"AUC gpfol / grid{tag}"] = f"{r['auc_gpfol']:.4f} / {r['auc_grid']:.4f}"
-    return {
+        table[f"AUC gppol / gpfol / grid{tag}"] = (
+            f"{r['auc_gppol']:.4f} / {r['auc_gpfol']:.4f} / {r['auc_grid']:.4f}"
+        )
+    result = {
         "protocol": protocol,
         "seeds": used_seeds,
         "auc": auc,
         "input": str(input_path),
         "poses": pose_source,
-        "notes": "gppol is None until GPPOL lands (issue 5)",
+        "perturb_poses": None if perturb_poses is None else list(perturb_poses),
+        "gppol_pose_covariance": pose_cov,
         "per_seed": rows,
         "table": table,
     }
+    if "sensor_noise" in out:
+        result["sensor_noise"] = out["sensor_noise"]
+        result["sensor_noise_from"] = out["sensor_noise_from"]
+    return result

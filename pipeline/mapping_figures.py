@@ -4,7 +4,10 @@
 - the ROC curves of GPFOL and the grid on the Intel hold-out protocol (seed 0);
 - the paper's Figure 6 panels on the simulated ``street`` world, and its ROC curves (Figure 7) for GPFOL and
   the occupancy grid with widened and with narrow beams (``python -m pipeline.mapping_figures street`` makes
-  only these).
+  only these);
+- the paper's Figures 9 and 10 on the simulated ``two-platform`` world: grid, GPFOL and GPPOL p(occupied) and
+  classified maps, GPFOL and GPPOL variance (``python -m pipeline.mapping_figures two-platform`` makes only
+  these).
 """
 
 from __future__ import annotations
@@ -15,14 +18,27 @@ from typing import Any
 
 import numpy as np
 
-from mapping.evaluation import holdout_split, holdout_test_points, is_carmen_180, raster_cell_centres
+from mapping.evaluation import (
+    holdout_split,
+    holdout_test_points,
+    is_carmen_180,
+    observed_cells,
+    raster_cell_centres,
+)
 from mapping.exports import MapLayers
-from mapping.figures import plot_classified, plot_layer, plot_roc, plot_street_panels
+from mapping.figures import (
+    plot_classified,
+    plot_layer,
+    plot_method_rows,
+    plot_roc,
+    plot_street_panels,
+    plot_variance_pair,
+)
 from mapping.grid import OccupancyGrid
 from mapping.metrics import roc_auc, roc_curve
 from pipeline.bench_mapping import DATA_DIR, INTEL, robust_bounds
 from pipeline.config import load_config
-from pipeline.evaluate_map import make_beams, reference_laser_poses
+from pipeline.evaluate_map import ground_truth_noise, make_beams, reference_base_poses, reference_laser_poses
 from pipeline.mapping_stage import build_gp_map, build_grid, fit_params
 
 REPO = Path(__file__).resolve().parent.parent
@@ -36,10 +52,11 @@ def intel_figures(out: Path) -> dict[str, Any]:
     cfg = load_config().mapping
     path = DATA_DIR / INTEL
     rec = open_dataset(path)
-    poses = reference_laser_poses(rec, path)
+    poses = reference_base_poses(rec, path)
+    laser = reference_laser_poses(rec, path)
     n = len(rec.scans)
     beams = make_beams(rec, poses, np.arange(n), cfg)
-    params = fit_params(beams, cfg)
+    params = fit_params(beams, cfg, mapper="gpfol")
     gp = build_gp_map(beams, params, cfg, mapper="gpfol")
     bounds = robust_bounds(beams.hit_xy_m)
     layers = gp.render(bounds, 0.1)
@@ -50,9 +67,9 @@ def intel_figures(out: Path) -> dict[str, Any]:
     held = holdout_split(n, 0)
     train = np.setdiff1d(np.arange(n), held)
     carmen = is_carmen_180(rec.scans.angles_rad[0])
-    pts, labels = holdout_test_points(rec.scans.ranges_m, rec.scans.angles_rad, poses, held, 0, carmen)
+    pts, labels = holdout_test_points(rec.scans.ranges_m, rec.scans.angles_rad, laser, held, 0, carmen)
     tb = make_beams(rec, poses, train, cfg)
-    p_gp = build_gp_map(tb, fit_params(tb, cfg), cfg, mapper="gpfol").query(pts).probability
+    p_gp = build_gp_map(tb, fit_params(tb, cfg, mapper="gpfol"), cfg, mapper="gpfol").query(pts).probability
     p_grid = build_grid(tb, cfg).query(pts)
     curves = {
         "GPFOL": (*roc_curve(p_gp, labels)[:2], roc_auc(p_gp, labels)),
@@ -71,9 +88,9 @@ def street_figures(out: Path, seed: int = 0) -> dict[str, Any]:
     run = make_world("street", seed)
     rec = run.recording
     gt = run.ground_truth
-    poses = reference_laser_poses(rec, Path("street"))
+    poses = reference_base_poses(rec, Path("street"))
     beams = make_beams(rec, poses, np.arange(len(rec.scans)), cfg)
-    params = fit_params(beams, cfg)
+    params = fit_params(beams, cfg, mapper="gpfol")
     gp = build_gp_map(beams, params, cfg, mapper="gpfol")
     occ = np.asarray(gt.occupancy).astype(bool)
     h, w = occ.shape
@@ -102,12 +119,105 @@ def street_figures(out: Path, seed: int = 0) -> dict[str, Any]:
     return {"street_auc": {k: v[2] for k, v in curves.items()}, "street_params": params.kernel.as_dict()}
 
 
+REGIONS = ("platform I", "platform II only", "neither")
+
+
+def two_platform_result(seed: int = 0, every: int = 1) -> dict[str, Any]:
+    """GPPOL, GPFOL and the grid on the ``two-platform`` world (the paper's dataset II, section 4.1.2), laser
+    noise per platform from the simulator (the ground truth's ``sources``), exact poses.
+
+    Scores every ``every``-th row and column of the ground-truth raster: ``auc`` over those cells (SPEC
+    section 6), ``auc_observed`` over the cells some beam observed, and by region ``REGIONS`` (cells observed
+    by platform I; by platform II only; by neither), with the median variance of the ground-truth FREE cells
+    of each region (``median_variance``). Returns also the layers (probability, mean, variance) of each
+    mapper on that raster, the tracks of both platforms and the parameters."""
+    from datasets.simulation import make_world
+
+    run = make_world("two-platform", seed)
+    rec, gt = run.recording, run.ground_truth
+    cfg = ground_truth_noise(load_config().mapping, gt)
+    poses = reference_base_poses(rec, Path("two-platform"))
+    beams = make_beams(rec, poses, np.arange(len(rec.scans)), cfg)
+    occ = np.asarray(gt.occupancy).astype(bool)
+    res = float(gt.resolution_m)
+    origin = np.asarray(gt.origin_xy_m, dtype=np.float64)
+    h, w = occ.shape
+    bounds = (origin[0], origin[1], origin[0] + w * res, origin[1] + h * res)
+    centres = raster_cell_centres(occ.shape, origin, res).reshape(h, w, 2)[::every, ::every]
+    shape = centres.shape[:2]
+    centres = centres.reshape(-1, 2)
+    labels = occ[::every, ::every].ravel()
+    seen = [
+        observed_cells(beams.subset(beams.source_index == s), bounds, res)[::every, ::every].ravel()
+        for s in range(2)
+    ]
+    regions = {
+        REGIONS[0]: seen[0],
+        REGIONS[1]: seen[1] & ~seen[0],
+        REGIONS[2]: ~seen[0] & ~seen[1],
+    }
+    observed = seen[0] | seen[1]
+    sub_origin = origin + 0.5 * res * (every - 1)
+    out: dict[str, Any] = {"auc": {}, "auc_observed": {}, "auc_by_region": {}, "median_variance": {}}
+    out["layers"], out["params"] = {}, {}
+    for mapper in ("gppol", "gpfol"):
+        params = fit_params(beams, cfg, mapper=mapper)
+        pred = build_gp_map(beams, params, cfg, mapper=mapper).query(centres, sort=False)
+        p = pred.probability
+        out["params"][mapper] = {"kernel": params.kernel.name, **params.kernel.as_dict()}
+        out["layers"][mapper] = MapLayers(
+            p.reshape(shape), pred.mean.reshape(shape), pred.variance.reshape(shape), res * every, sub_origin
+        )
+        out["median_variance"][mapper] = {
+            k: float(np.median(pred.variance[r & ~labels])) for k, r in regions.items()
+        }
+        out["auc_by_region"][mapper] = {k: roc_auc(p[r], labels[r]) for k, r in regions.items()}
+        out["auc"][mapper] = roc_auc(p, labels)
+        out["auc_observed"][mapper] = roc_auc(p[observed], labels[observed])
+    p_grid = build_grid(beams, cfg, bounds).query(centres)
+    out["auc"]["grid"] = roc_auc(p_grid, labels)
+    out["auc_observed"]["grid"] = roc_auc(p_grid[observed], labels[observed])
+    out["layers"]["grid"] = MapLayers(
+        p_grid.reshape(shape), p_grid.reshape(shape), p_grid.reshape(shape), res * every, sub_origin
+    )
+    out["region_cells"] = {k: int(r.sum()) for k, r in regions.items()}
+    out["tracks"] = {
+        f"platform {'I' * (s + 1)}": beams.origins_xy_m[beams.source_index == s][::37] for s in range(2)
+    }
+    out["sensor_noise"] = {name: c.model_dump() for name, c in cfg.sources.items()}
+    return out
+
+
+def two_platform_figures(out: Path, seed: int = 0, every: int = 2) -> dict[str, Any]:
+    """The paper's Figures 9 (p(occupied) and classified maps of the grid, GPFOL and GPPOL) and 10 (GPFOL and
+    GPPOL variance) on the ``two-platform`` world, on every ``every``-th cell of its 0.1 m raster."""
+    r = two_platform_result(seed, every)
+    cfg = load_config().mapping
+    lay = r["layers"]
+    rows = {
+        f"grid (AUC {r['auc']['grid']:.3f})": lay["grid"],
+        f"GPFOL (AUC {r['auc']['gpfol']:.3f})": lay["gpfol"],
+        f"GPPOL (AUC {r['auc']['gppol']:.3f})": lay["gppol"],
+    }
+    plot_method_rows(
+        rows, out / "two_platform_figure9.png", cfg.occupied_threshold, cfg.free_threshold, r["tracks"]
+    )
+    plot_variance_pair({"GPFOL": lay["gpfol"], "GPPOL": lay["gppol"]}, out / "two_platform_figure10.png")
+    keys = ("auc", "auc_observed", "auc_by_region", "median_variance", "region_cells", "params")
+    return {f"two_platform_{k}": r[k] for k in keys}
+
+
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
-    only_street = bool(args) and args[0] == "street"
-    args = args[1:] if only_street else args
+    only = args[0] if args and args[0] in ("street", "two-platform") else None
+    args = args[1:] if only else args
     out = Path(args[0]) if args else OUT_DIR
-    report = street_figures(out) if only_street else {**street_figures(out), **intel_figures(out)}
+    if only == "street":
+        report = street_figures(out)
+    elif only == "two-platform":
+        report = two_platform_figures(out)
+    else:
+        report = {**street_figures(out), **intel_figures(out), **two_platform_figures(out)}
     sys.stdout.write(f"{report}\n")
     return 0
 

@@ -15,10 +15,16 @@ from datasets.types import ScanSequence
 from mapping.beams import Beams, beams_from_scan_sequence
 from mapping.config import MappingConfig
 from mapping.gpmap import GPOccupancyMap
+from mapping.gppol import GaussianInputs, SensorNoise, input_moments
 from mapping.grid import OccupancyGrid
+from mapping.kernels import KERNELS, Kernel, make_kernel
 from mapping.metrics import roc_auc
+from mapping.noisy_kernels import GAUSS_HERMITE, GIRARD, InputExpectation
 from mapping.train import GPParams, ParamsFileError, train_gp
-from pipeline.errors import NotYetAvailableError, PipelineError
+from mapping.unscented import UTParams
+from pipeline.errors import PipelineError
+
+MAPPERS = ("gppol", "gpfol")
 
 Bounds = tuple[float, float, float, float]
 
@@ -33,16 +39,68 @@ def load_params(cfg: MappingConfig) -> GPParams | None:
         raise ConfigError(f"{cfg.params_file}: {exc}") from None
 
 
-def fit_params(beams: Beams, cfg: MappingConfig, seed_offset: int = 0) -> GPParams:
-    """Stored parameters if configured, else hyperparameters and PLS link learnt from the first scans."""
+def sensor_noise(cfg: MappingConfig, source_names: tuple[str, ...] | list[str]) -> list[SensorNoise]:
+    """The laser noise of each source: ``cfg.sources[name]`` where named, else ``cfg.default_source``."""
+    out = []
+    for name in source_names:
+        s = cfg.sources.get(name, cfg.default_source)
+        out.append(SensorNoise(s.range_var_m2, s.bearing_var_rad2))
+    return out
+
+
+def input_expectation(cfg: MappingConfig, kernel: Kernel) -> InputExpectation:
+    """How GPPOL integrates ``kernel`` over its inputs (``auto``: Girard's eq. 19 for SE, else
+    Gauss-Hermite)."""
+    method = cfg.gppol_expectation
+    if method == "auto":
+        method = GIRARD if kernel.name == "se" else GAUSS_HERMITE
+    return InputExpectation(method, cfg.gppol_gh_level)
+
+
+def gaussian_inputs(
+    beams: Beams, cfg: MappingConfig, cov_xytheta: NDArray | None, kernel: Kernel
+) -> GaussianInputs:
+    """The GPPOL inputs of ``beams``: the UT of every beam with the (N, 3, 3) world-frame base-pose
+    covariances of the scans (indexed by ``beams.scan_index``; None: exact poses) and the per-source laser
+    noise of ``cfg``."""
+    ut = UTParams(cfg.ut_alpha, cfg.ut_beta, cfg.ut_kappa)
+    noise = sensor_noise(cfg, beams.source_names)
+    try:
+        moments = input_moments(beams, cov_xytheta, noise, ut)
+        free = None
+        if not cfg.gppol_free_range_noise:
+            no_range = [SensorNoise(0.0, s.bearing_var_rad2) for s in noise]
+            free = input_moments(beams, cov_xytheta, no_range, ut)
+    except ValueError as exc:
+        raise PipelineError(f"cannot build the GPPOL inputs: {exc}") from None
+    return GaussianInputs(moments, input_expectation(cfg, kernel), free)
+
+
+def fit_params(
+    beams: Beams,
+    cfg: MappingConfig,
+    seed_offset: int = 0,
+    mapper: str | None = None,
+    cov_xytheta: NDArray | None = None,
+) -> GPParams:
+    """Stored parameters if configured, else hyperparameters and PLS link learnt from the first scans for
+    ``mapper`` (default ``cfg.mapper``): GPFOL with ``cfg.kernel``; GPPOL with ``cfg.gppol_kernel`` on the
+    beams' input Gaussians (pose covariances ``cov_xytheta`` (N, 3, 3) by scan, None: exact poses)."""
     stored = load_params(cfg)
     if stored is not None:
         return stored
+    gppol = (mapper or cfg.mapper) == "gppol"
+    kernel_name = cfg.gppol_kernel if gppol else cfg.kernel
+    names = KERNELS[kernel_name].names
+    bounds = {k: v for k, v in cfg.kernel_bounds.items() if k in names} or None
+    inputs = None
+    if gppol:
+        inputs = gaussian_inputs(beams, cfg, cov_xytheta, make_kernel(kernel_name))
     try:
         return train_gp(
             beams,
-            kernel_name=cfg.kernel,
-            kernel_bounds=cfg.kernel_bounds or None,
+            kernel_name=kernel_name,
+            kernel_bounds=bounds,
             noise_var=cfg.noise_var,
             k_occ=cfg.k_occupied,
             k_free=cfg.k_free,
@@ -53,6 +111,7 @@ def fit_params(beams: Beams, cfg: MappingConfig, seed_offset: int = 0) -> GPPara
             seed=cfg.train_seed + seed_offset,
             index_cell_m=cfg.index_cell_m,
             learn_noise=cfg.learn_noise,
+            inputs=inputs,
         )
     except ValueError as exc:
         raise PipelineError(f"cannot train the GP: {exc}") from None
@@ -78,11 +137,9 @@ def make_beams(
 
 
 def check_mapper_available(mapper: str) -> None:
-    """Fail before any work when ``mapper`` has not landed yet."""
-    if mapper == "gppol":
-        raise NotYetAvailableError(
-            "mapper 'gppol' is not available yet: GPPOL lands with issue #5 (use --mapper gpfol)"
-        )
+    """Fail before any work when ``mapper`` is unknown."""
+    if mapper not in MAPPERS:
+        raise ConfigError(f"unknown mapper '{mapper}' (known: {', '.join(MAPPERS)})")
 
 
 def build_gp_map(
@@ -92,10 +149,20 @@ def build_gp_map(
     cov_xytheta: NDArray | None = None,
     mapper: str | None = None,
 ) -> GPOccupancyMap:
-    """The GP map of ``mapper`` (default ``cfg.mapper``) over ``beams``. GPPOL needs the (N, 3, 3)
-    world-frame base-pose covariances of the scans (indexed by ``beams.scan_index``)."""
-    check_mapper_available(mapper or cfg.mapper)
-    return GPOccupancyMap(beams, params, cfg.k_occupied, cfg.k_free, cfg.jitter, cfg.index_cell_m)
+    """The GP map of ``mapper`` (default ``cfg.mapper``) over ``beams``. GPPOL uses the (N, 3, 3)
+    world-frame base-pose covariances of the scans (indexed by ``beams.scan_index``; None: exact poses) and
+    the laser noise per source of ``cfg``; GPFOL ignores them."""
+    mapper = mapper or cfg.mapper
+    check_mapper_available(mapper)
+    if mapper == "gpfol" and "inputs" in params.info:
+        raise PipelineError("these GP parameters were learnt for GPPOL: learn them with mapper='gpfol'")
+    inputs = gaussian_inputs(beams, cfg, cov_xytheta, params.kernel) if mapper == "gppol" else None
+    try:
+        return GPOccupancyMap(
+            beams, params, cfg.k_occupied, cfg.k_free, cfg.jitter, cfg.index_cell_m, inputs=inputs
+        )
+    except ValueError as exc:
+        raise PipelineError(f"cannot build the {mapper.upper()} map: {exc}") from None
 
 
 def build_grid(beams: Beams, cfg: MappingConfig, bounds: Bounds | None = None) -> OccupancyGrid:

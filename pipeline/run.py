@@ -100,7 +100,8 @@ def build_maps(
     }
     if params is None:
         with timer("train"), progress.stage("train GP", total=1) as bar:
-            params = ms.fit_params(next(iter(beams.values())), cfg)
+            first = next(iter(trajectories))
+            params = ms.fit_params(beams[first], cfg, cov_xytheta=trajectories[first][1])
             bar.advance()
     if bounds is None:
         bounds = ms.union_bounds(*(b.bounds_xy_m(MAP_MARGIN_M) for b in beams.values()))

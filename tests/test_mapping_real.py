@@ -41,7 +41,7 @@ def test_intel_map_sees_walls_and_free_space(intel) -> None:
     rec, poses = intel
     cfg = MappingConfig(**FAST)
     beams = make_beams(rec, poses, np.arange(len(rec.scans)), cfg)
-    gp = GPOccupancyMap(beams, fit_params(beams, cfg), cfg.k_occupied, cfg.k_free)
+    gp = GPOccupancyMap(beams, fit_params(beams, cfg, mapper="gpfol"), cfg.k_occupied, cfg.k_free)
     rng = np.random.default_rng(0)
     hits = beams.hit_xy_m[rng.choice(int(beams.is_hit.sum()), 3000, replace=False)]
     on_path = poses[:, :2]
@@ -65,8 +65,9 @@ def test_street_world_ground_truth_protocol(tmp_path) -> None:
     simulate("street", bag, seed=0)
     out = evaluate_map(bag, None, REPO / "mapping" / "configs" / "noise_free_simulation.yaml", Progress())
     assert out["protocol"] == "ground_truth" and out["seeds"] == []
-    assert out["auc"]["gppol"] is None
     assert out["auc"]["gpfol"] > 0.95
+    # noise-free laser, exact poses: GPPOL's inputs are nearly points, it maps about as well
+    assert out["auc"]["gppol"] > 0.9
     assert out["auc"]["gpfol"] > out["auc"]["grid"] + 0.2
     assert out["per_seed"][0]["test_points"] == 1000 * 1800
 

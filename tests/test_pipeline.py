@@ -75,7 +75,7 @@ def loop_bag(tmp_path_factory) -> Path:
 def loop_run(loop_bag, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("runs") / "loop"
     cfg = write_config(out.parent / "fast.yaml", FAST_TRAINING)
-    run_pipeline(loop_bag, out, config_path=cfg, mapper="gpfol")
+    run_pipeline(loop_bag, out, config_path=cfg)  # the default mapper: GPPOL with the SLAM covariances
     return out
 
 
@@ -109,7 +109,7 @@ def check_run_folder(out: Path) -> dict:
 
 def test_loop_run_folder_is_complete(loop_run) -> None:
     summary = check_run_folder(loop_run)
-    assert summary["counts"]["scans"] == 614
+    assert summary["counts"]["scans"] == 614 and summary["mapper"] == "gppol"
     assert summary["counts"]["loop_closures"] >= 1
     ate = summary["metrics"]["ate_rmse_m"]
     assert ate["after"] < 0.05 and ate["after"] <= ate["before"]

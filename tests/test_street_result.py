@@ -39,7 +39,7 @@ def street() -> dict[str, tuple[float, float]]:
     beams = make_beams(rec, reference_laser_poses(rec, Path("street")), np.arange(len(rec.scans)), cfg)
     labels = gt.occupancy.astype(bool).ravel()
     centres = raster_cell_centres(gt.occupancy.shape, np.asarray(gt.origin_xy_m, np.float64), gt.resolution_m)
-    gp = build_gp_map(beams, fit_params(beams, cfg), cfg, mapper="gpfol")
+    gp = build_gp_map(beams, fit_params(beams, cfg, mapper="gpfol"), cfg, mapper="gpfol")
     scores = {
         "gpfol": gp.query(centres, sort=False).probability,
         "grid": OccupancyGrid.from_config(beams, cfg.grid, gt.bounds_xy_m).query(centres),

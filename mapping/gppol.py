@@ -1,0 +1,106 @@
+"""GPPOL inputs (paper section 3.6.3, Algorithm 3): every beam's training points as Gaussians.
+
+:func:`input_moments` runs the unscented transform (:mod:`mapping.unscented`) on every beam with its scan's
+world-frame base-pose covariance (the FULL 3x3, e.g. a SLAM marginal) and its sensor's range and bearing
+variances (per source, so that recordings of several platforms fuse). :class:`GaussianInputs` pairs those
+per-beam coefficients with the way the kernel is integrated over them
+(:class:`mapping.noisy_kernels.InputExpectation`); :class:`mapping.gpmap.GPOccupancyMap` given one is GPPOL,
+without one GPFOL -- the same map object and the same compiled core (:mod:`mapping.core`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from mapping.beams import Beams
+from mapping.core import INPUTS_GH_DIFFERENCE, INPUTS_GH_NODES, INPUTS_GIRARD
+from mapping.kernels import Kernel
+from mapping.noisy_kernels import GIRARD, InputExpectation
+from mapping.unscented import BeamMoments, UTParams, beam_moments
+
+FloatArray = NDArray[np.float64]
+DEFAULT_EXPECTATION = InputExpectation()
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Measurement noise of one laser: range variance (m^2) and bearing variance (rad^2)."""
+
+    range_var_m2: float = 0.0
+    bearing_var_rad2: float = 0.0
+
+
+def input_moments(
+    beams: Beams,
+    pose_cov_xytheta: FloatArray | None,
+    noise_by_source: list[SensorNoise] | tuple[SensorNoise, ...],
+    ut: UTParams | None = None,
+) -> BeamMoments:
+    """UT coefficients of every beam (eqs. 24-28, exact in the distance along the beam).
+
+    ``pose_cov_xytheta`` (N, 3, 3): world-frame covariance of the BASE pose of each scan, indexed by
+    ``beams.scan_index`` (None: poses are exact); ``noise_by_source``: one :class:`SensorNoise` per entry of
+    ``beams.source_names`` (indexed by ``beams.source_index``)."""
+    M = len(beams)
+    if pose_cov_xytheta is None:
+        cov = np.zeros((M, 3, 3))
+    else:
+        all_cov = np.asarray(pose_cov_xytheta, dtype=np.float64).reshape(-1, 3, 3)
+        if M and int(beams.scan_index.max()) >= all_cov.shape[0]:
+            raise ValueError(
+                f"{all_cov.shape[0]} pose covariances, but beams of scan {int(beams.scan_index.max())}"
+            )
+        cov = all_cov[beams.scan_index]
+    if M and int(beams.source_index.max()) >= len(noise_by_source):
+        raise ValueError(f"{len(noise_by_source)} sensor noise settings for sources {beams.source_names}")
+    var_r = np.array([s.range_var_m2 for s in noise_by_source], dtype=np.float64)
+    var_b = np.array([s.bearing_var_rad2 for s in noise_by_source], dtype=np.float64)
+    src = beams.source_index.astype(np.int64)
+    return beam_moments(
+        beams.bearings_rad,
+        beams.base_poses_xytheta(),
+        cov,
+        var_r[src] if M else np.zeros(0),
+        var_b[src] if M else np.zeros(0),
+        beams.laser_in_base_xytheta,
+        ut or UTParams(),
+    )
+
+
+@dataclass(frozen=True)
+class GaussianInputs:
+    """What makes a map GPPOL: the per-beam input Gaussians and how kernels are integrated over them."""
+
+    moments: BeamMoments
+    expectation: InputExpectation = DEFAULT_EXPECTATION
+    free_moments: BeamMoments | None = None  # free points' coefficients if they differ (no range noise)
+
+    def free(self) -> BeamMoments:
+        """The coefficients of the free points (default: those of the endpoints, as Algorithm 3)."""
+        return self.moments if self.free_moments is None else self.free_moments
+
+    def core_mode(self, kernel: Kernel) -> int:
+        """The GPPOL mode of :func:`mapping.core.predict_batch` for ``kernel``."""
+        self.expectation.check(kernel)
+        if self.expectation.method == GIRARD:
+            return INPUTS_GIRARD
+        return INPUTS_GH_DIFFERENCE if kernel.stationary else INPUTS_GH_NODES
+
+    def rule(self) -> tuple[FloatArray, FloatArray]:
+        """The 2-D quadrature nodes (m, 2) and weights (m,) the core uses (unused by Girard's form)."""
+        z, w = self.expectation.rule()
+        return np.ascontiguousarray(z), np.ascontiguousarray(w)
+
+    def core_arrays(self, beams: Beams, hit_beam: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
+        """``occ_mom`` (H, 5): mean and packed covariance of the endpoints ``hit_beam`` (in the point index's
+        order), and ``seg_mom`` (M, 14): per beam ``a, b, C0, C1, C2`` and the length of its free part."""
+        mo = self.moments
+        d_hit = beams.ranges_m[hit_beam]
+        occ = np.column_stack([mo.mean_at(d_hit, hit_beam), mo.packed_cov_at(d_hit, hit_beam)])
+        free_len = np.hypot(*(beams.free_ends_xy_m - beams.origins_xy_m).T)
+        fm = self.free()
+        seg = np.column_stack([fm.a, fm.b, fm.c0, fm.c1, fm.c2, free_len])
+        return np.ascontiguousarray(occ), np.ascontiguousarray(seg)

@@ -1,0 +1,156 @@
+"""GPPOL (issue 5) end to end: the compiled core against the numpy reference, the two-platform world (the
+paper's dataset II) and the Intel lab with perturbed poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from datasets.registry import open_dataset
+from mapping.config import MappingConfig
+from mapping.gpmap import GPOccupancyMap
+from mapping.gppol import GaussianInputs, SensorNoise, input_moments
+from mapping.kernels import make_kernel
+from mapping.noisy_kernels import GAUSS_HERMITE, GIRARD, SIGMA_POINTS, InputExpectation, sigma_point_rule_2d
+from mapping.train import GPParams
+from pipeline import evaluate_map as em
+from pipeline.errors import PipelineError
+from pipeline.progress import Progress
+from tests.conftest import data_file
+
+FAST = {"train_anneal_evaluations": 40, "train_lbfgs_iterations": 40, "train_problems": 48}
+
+
+@pytest.fixture(scope="module")
+def intel():
+    path = data_file("intel/intel.gfs.log")
+    rec = open_dataset(path)
+    return rec, em.reference_base_poses(rec, path)
+
+
+def _reference_prediction(gp: GPOccupancyMap, queries: np.ndarray, k_occ: int, k_free: int):
+    """Mean, variance, p(occ) of eqs. 2-3 + PLS from the numpy kernels between distributions."""
+    inputs = gp.inputs
+    X, cov, y, full = gp.index.local_gaussians(queries, k_occ, k_free, inputs.moments, inputs.free_moments)
+    kern, ex = gp.params.kernel, inputs.expectation
+    K = ex.matrix(kern, X, cov) + gp.params.noise_var * np.eye(X.shape[1])
+    ks = ex.cross(kern, X, cov, np.zeros((X.shape[0], 1, 2)))[..., 0]
+    kss = kern(np.zeros((1, 2)))[0, 0]
+    a = np.linalg.solve(K, np.concatenate([y[..., None], ks[..., None]], axis=2))
+    mu = np.einsum("qi,qi->q", ks, a[..., 0])
+    var = kss - np.einsum("qi,qi->q", ks, a[..., 1])
+    p = gp.params
+    from scipy.special import ndtr
+
+    prob = ndtr((p.alpha * mu + p.beta) / np.sqrt(1.0 + p.alpha**2 * (var + p.noise_var)))
+    return mu, var, prob, full
+
+
+@pytest.mark.parametrize(
+    ("kernel", "method", "level"),
+    [("se", GIRARD, 1), ("se", GAUSS_HERMITE, 3), ("matern32", GAUSS_HERMITE, 2), ("nn", SIGMA_POINTS, 1),
+     ("nn", GAUSS_HERMITE, 2)],
+)  # fmt: skip
+def test_compiled_core_matches_the_numpy_reference(intel, kernel, method, level) -> None:
+    rec, base = intel
+    cfg = MappingConfig()
+    beams = em.make_beams(rec, base, np.arange(40, 70), cfg)
+    cov = np.tile(np.diag([0.1**2, 0.05**2, 0.02**2]), (len(rec.scans), 1, 1))
+    cov[:, 0, 2] = cov[:, 2, 0] = 0.5 * 0.1 * 0.02  # correlated terms kept
+    moments = input_moments(beams, cov, [SensorNoise(0.01, 1e-4)])
+    values = {"nn": (0.9, 3.0, 4.0), "se": (0.9, 0.6), "matern32": (0.9, 0.8)}[kernel]
+    params = GPParams(make_kernel(kernel, values), 0.1, 8.0, 0.3, {"inputs": {}})
+    gp = GPOccupancyMap(
+        beams, params, 15, 15, inputs=GaussianInputs(moments, InputExpectation(method, level))
+    )
+    rng = np.random.default_rng(3)
+    q = beams.hit_xy_m[rng.choice(int(beams.is_hit.sum()), 60, replace=False)] + rng.normal(0, 0.4, (60, 2))
+    mu, var, prob, full = _reference_prediction(gp, q, 15, 15)
+    pred = gp.query(q[full], sort=False)
+    assert full.sum() > 50
+    np.testing.assert_allclose(pred.mean, mu, atol=2e-7, rtol=1e-6)
+    np.testing.assert_allclose(pred.variance, var, atol=2e-7, rtol=1e-6)
+    np.testing.assert_allclose(pred.probability, prob, atol=1e-6)
+    # the inputs matter: the same map with exact inputs (GPFOL) differs
+    assert (
+        np.abs(GPOccupancyMap(beams, params, 15, 15).query(q[full], sort=False).variance - var).max() > 1e-3
+    )
+
+
+def test_exact_inputs_make_gppol_gpfol(intel) -> None:
+    """Zero pose covariance and laser noise: every kernel expectation is the kernel itself."""
+    rec, base = intel
+    beams = em.make_beams(rec, base, np.arange(0, 30), MappingConfig())
+    moments = input_moments(beams, None, [SensorNoise(0.0, 0.0)])
+    params = GPParams(make_kernel("nn", (0.9, 3.0, 4.0)), 0.1, 8.0, 0.3)
+    q = beams.hit_xy_m[::37] + 0.2
+    ref = GPOccupancyMap(beams, params, 15, 15).query(q)
+    pol = GPOccupancyMap(
+        beams, params, 15, 15, inputs=GaussianInputs(moments, InputExpectation(SIGMA_POINTS))
+    )
+    got = pol.query(q)
+    np.testing.assert_allclose(got.mean, ref.mean, atol=1e-9)
+    np.testing.assert_allclose(got.variance, ref.variance, atol=1e-9)
+
+
+def test_sigma_point_rule_moments() -> None:
+    z, w = sigma_point_rule_2d()
+    assert w.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(w @ z, 0.0, atol=1e-15)
+    np.testing.assert_allclose(np.einsum("a,ai,aj->ij", w, z, z), np.eye(2), atol=1e-14)
+    np.testing.assert_allclose(w @ z**4, [3.0, 3.0])  # 4th moments along the axes are exact
+    np.testing.assert_allclose(w @ z**3, 0.0, atol=1e-14)
+
+
+def test_perturbation_is_seeded_and_parsed() -> None:
+    base = np.zeros((5, 3))
+    a, cov = em.perturb(base, 0.1, 0.02, seed=3)
+    b, _ = em.perturb(base, 0.1, 0.02, seed=3)
+    c, _ = em.perturb(base, 0.1, 0.02, seed=4)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, c)
+    np.testing.assert_allclose(cov[2], np.diag([0.01, 0.01, 0.0004]))
+    z = np.random.default_rng(em.PERTURB_SEED_BASE + 3).standard_normal((5, 3))
+    np.testing.assert_allclose(a, z * [0.1, 0.1, 0.02])
+    assert em.parse_perturbation("0.1,0.02") == (0.1, 0.02)
+    for bad in ("0.1", "a,b", "-1,0.1", "0.1,0.02,3"):
+        with pytest.raises(PipelineError, match="perturb-poses"):
+            em.parse_perturbation(bad)
+
+
+@pytest.mark.slow
+def test_two_platform_world_gppol_beats_gpfol_where_observed_and_its_variance_orders_the_regions() -> None:
+    """The paper's dataset II (section 4.1.2, Figures 9-10): where some beam looked, GPPOL above GPFOL (the
+    noisy platform's phantoms cost GPFOL) and both above the grid; GPPOL's variance lowest where platform I
+    scanned, higher where only the noisy platform II did, highest where neither did.
+
+    Not asserted, because it does not hold with the default GPPOL kernel (SE): GPPOL above GPFOL over EVERY
+    cell of the raster (measured 0.870 vs 0.892; the paper 0.9303 vs 0.8715). 77 % of the cells are never
+    observed (inside the blocks); there the NN kernel of GPFOL extrapolates the walls and the SE kernel
+    returns to its prior. GPPOL with the NN kernel (sigma-point rule) scores 0.8929 vs 0.8919."""
+    from pipeline.mapping_figures import REGIONS, two_platform_result
+
+    r = two_platform_result(seed=0, every=3)
+    auc, seen = r["auc"], r["auc_observed"]
+    # measured (every 3rd cell): gppol 0.870, gpfol 0.892, grid 0.716
+    assert auc["gppol"] > auc["grid"] + 0.1 and auc["gpfol"] > auc["grid"] + 0.1
+    assert seen["gppol"] > seen["gpfol"] + 0.008 and seen["gpfol"] > seen["grid"]  # 0.996, 0.982
+    only2 = REGIONS[1]
+    assert r["auc_by_region"]["gppol"][only2] > r["auc_by_region"]["gpfol"][only2] + 0.02  # 0.994 vs 0.962
+    v = r["median_variance"]["gppol"]
+    assert 3.0 * v[REGIONS[0]] < v[REGIONS[1]] and 3.0 * v[REGIONS[1]] < v[REGIONS[2]]  # 0.010, 0.114, 0.821
+    # GPFOL hardly tells the two platforms apart (measured 0.054 vs 0.070)
+    f = r["median_variance"]["gpfol"]
+    assert f[REGIONS[1]] / f[REGIONS[0]] < 0.2 * v[REGIONS[1]] / v[REGIONS[0]]
+
+
+@pytest.mark.slow
+def test_intel_perturbed_poses_gppol_beats_gpfol(intel) -> None:
+    """Poses perturbed by 0.1 m / 0.02 rad (the Hilbert-maps reference's perturb_data), GPPOL given that
+    covariance; scored on the unperturbed poses' test points (hold-out protocol, seed 0)."""
+    rec, base = intel
+    cfg = MappingConfig(**FAST)
+    out = em.evaluate_holdout(rec, base, [0], cfg, Progress(), perturb_poses=(0.1, 0.02))
+    row = out["per_seed"][0]
+    assert row["auc_gppol"] > row["auc_gpfol"] + 0.01  # measured 0.955 vs 0.925 (default training)
+    assert row["auc_gpfol"] > row["auc_grid"]
