@@ -37,6 +37,25 @@ class OdometryConfig(BaseModel):
         0.1, ge=0, description="insert a scan into the submaps after this travel"
     )
     insert_rotation_rad: float = Field(0.1, ge=0, description="... or after this rotation")
+    normal_radius_m: float = Field(
+        0.3, gt=0, description="point normals from the scan neighbours within this radius"
+    )
+    normal_max_neighbours: int = Field(
+        2, ge=1, le=500, description="... walking at most this many beams each way from the point"
+    )
+    normal_check: bool = Field(
+        False,
+        description="skip map points whose normal faces away from the scan point's (the far face of a "
+        "thin wall); off: with the 5-beam normals of a dense scanner (fr079) it drops good matches",
+    )
+    degenerate_ratio: float = Field(
+        0.02,
+        ge=0,
+        lt=1,
+        description="a translation direction whose scan information is below this fraction of the best "
+        "one is degenerate (a featureless corridor's axis): the wheel prediction and its uncertainty are "
+        "kept along it (0: off)",
+    )
     search_window_m: float = Field(
         0.1, ge=0, description="correlative search half-window around the prediction"
     )

@@ -115,7 +115,9 @@ class LoopCloser:
     def _scan_normals(self, s: int) -> FloatArray:
         n = self._normals.get(s)
         if n is None:
-            n = scan_normals(self.odo.points_base[s], max_gap_m=max(0.3, 6 * self.odo_cfg.resolution_m))
+            n = scan_normals(
+                self.odo.points_base[s], self.odo_cfg.normal_radius_m, self.odo_cfg.normal_max_neighbours
+            )
             self._normals[s] = n
         return n
 

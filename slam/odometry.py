@@ -11,9 +11,13 @@ increment (or, without wheels, the previous increment). Two registrations are av
   z = 0, no deskew), seeded by the same prediction; the submap grid is kept alongside for the gates and
   the information matrix.
 
-Either result is rejected -- and the wheel prediction used instead, with the wheel uncertainty -- when too
-few points match or the motion deviates implausibly from the wheels. Each scan gets the covariance of its
-registration, ``(H / sigma^2 + Lambda_wheel)^-1`` (world frame), which the graph scales into factor noise.
+With ``normal_check`` the refinement skips map points whose normal faces away from the scan point's
+(both face their sensors): the far face of a thin wall seen earlier from the other side. Translation
+directions the scan barely constrains (a featureless corridor's axis, ``degenerate_ratio``) keep the
+prediction and its uncertainty (:func:`remap_degenerate`). Either result is rejected -- and the wheel
+prediction used instead, with the wheel uncertainty -- when too few points match or the motion deviates
+implausibly from the wheels. Each scan gets the covariance of its registration,
+``(H / sigma^2 + Lambda_wheel)^-1`` (world frame), which the graph scales into factor noise.
 """
 
 from __future__ import annotations
@@ -211,6 +215,35 @@ class _KissRegistration:
         self.map._update(self._lift(points_base), self._t(pose))
 
 
+def remap_degenerate(
+    prediction_xytheta: FloatArray, pose_xytheta: FloatArray, hessian: FloatArray, min_ratio: float
+) -> tuple[FloatArray, FloatArray]:
+    """Keep a registration only along the translation directions that the scan constrains.
+
+    ``hessian`` (3, 3) is the scan's point-to-line information (world frame, x, y, theta). Translation
+    directions whose eigenvalue is below ``min_ratio`` times the largest one (the axis of a featureless
+    corridor, where a few door jambs or noise decide the match) are degenerate: the pose keeps the
+    prediction along them and the returned information (3, 3) is zero along them, so the covariance there
+    is the wheel prior's. This is the solution remapping of Zhang, Kaess & Singh, "On degeneracy of
+    optimization-based state estimation problems" (ICRA 2016), on the translation block. Returns
+    ``(pose (3,), information (3, 3))``.
+    """
+    h = np.asarray(hessian, dtype=np.float64)
+    val, vec = np.linalg.eigh(h[:2, :2])
+    if val[-1] <= 0.0:
+        return np.asarray(prediction_xytheta, dtype=np.float64).copy(), np.zeros((3, 3))
+    deg = vec[:, val < min_ratio * val[-1]]
+    if deg.shape[1] == 0:
+        return np.asarray(pose_xytheta, dtype=np.float64), h
+    proj = np.eye(3)
+    proj[:2, :2] -= deg @ deg.T
+    delta = np.asarray(pose_xytheta, dtype=np.float64) - prediction_xytheta
+    delta[2] = se2.wrap(delta[2])
+    pose = prediction_xytheta + proj @ delta
+    pose[2] = se2.wrap(pose[2])
+    return pose, proj.T @ h @ proj
+
+
 def run_odometry(
     points_base: list[FloatArray],
     wheel_poses_xytheta: FloatArray | None,
@@ -245,6 +278,7 @@ def run_odometry(
     with stage(progress, "odometry", n) as bar:
         for i in range(n):
             pts = points_base[i]
+            nrm = None
             if i > 0:
                 inc = wheel_inc[i - 1] if wheel_inc is not None else last_inc
                 pred = se2.compose(poses[i - 1], inc)
@@ -255,6 +289,10 @@ def run_odometry(
                 target = submaps.target
                 accepted = False
                 if target is not None and pts.shape[0] >= cfg.min_points:
+                    if cfg.normal_check:
+                        t0 = time.perf_counter()
+                        nrm = scan_normals(pts, cfg.normal_radius_m, cfg.normal_max_neighbours)
+                        t_normals += time.perf_counter() - t0
                     t0 = time.perf_counter()
                     prior_info = np.linalg.inv(cov_pred_w)
                     if wheel_inc is None:  # a constant-velocity guess: search wider
@@ -279,8 +317,12 @@ def run_odometry(
                         prior_xytheta=pred,
                         prior_information=prior_info,
                         max_iterations=0 if kiss is not None else 30,
+                        normals_xy=nrm,
                     )
                     pose = start if kiss is not None else al.pose_xytheta
+                    hessian = al.hessian
+                    if kiss is None and cfg.degenerate_ratio > 0:
+                        pose, hessian = remap_degenerate(pred, pose, al.hessian, cfg.degenerate_ratio)
                     frac = al.inliers / pts.shape[0]
                     dev = se2.between(pred, pose)
                     accepted = (
@@ -298,7 +340,7 @@ def run_odometry(
                         if cfg.sigma_from_residuals
                         else cfg.point_sigma_m
                     )
-                    covs[i] = np.linalg.inv(al.hessian / sigma**2 + prior_info)
+                    covs[i] = np.linalg.inv(hessian / sigma**2 + prior_info)
                     status[i] = MATCHED
                 else:
                     poses[i] = pred
@@ -316,9 +358,10 @@ def run_odometry(
                 or math.hypot(*(poses[i, :2] - last_insert[:2])) >= cfg.insert_distance_m
                 or abs(se2.wrap(poses[i, 2] - last_insert[2])) >= cfg.insert_rotation_rad
             ):
-                t0 = time.perf_counter()
-                nrm = scan_normals(pts, max_gap_m=max(0.3, 6 * cfg.resolution_m))
-                t_normals += time.perf_counter() - t0
+                if nrm is None:
+                    t0 = time.perf_counter()
+                    nrm = scan_normals(pts, cfg.normal_radius_m, cfg.normal_max_neighbours)
+                    t_normals += time.perf_counter() - t0
                 t0 = time.perf_counter()
                 submaps.insert(poses[i], pts, nrm)
                 if kiss is not None:

@@ -128,3 +128,41 @@ def test_grid_insert_and_reset() -> None:
     assert grid.score[cell[1], cell[0]] > 0.5
     grid.reset(np.array([10.0, 10.0]))
     assert len(grid) == 0 and np.all(grid.nearest == -1) and np.all(grid.score == 0)
+
+
+def test_normals_face_the_sensor() -> None:
+    x = np.linspace(-1, 1, 21)
+    above = scan_normals(np.stack([x, np.full_like(x, 2.0)], axis=1))
+    below = scan_normals(np.stack([x, np.full_like(x, -2.0)], axis=1))
+    np.testing.assert_allclose(above[:, 1], -1.0, atol=1e-9)  # a wall at y = 2 faces the origin: -y
+    np.testing.assert_allclose(below[:, 1], 1.0, atol=1e-9)
+    # a metric radius gathers many beams of a dense scan, a beam window of 2 only 5 of them
+    rng = np.random.default_rng(3)
+    dense = np.stack([np.linspace(-1, 1, 401), 2.0 + rng.normal(0, 0.01, 401)], axis=1)
+    tilt_narrow = np.abs(scan_normals(dense, 0.3, 2)[:, 0])
+    tilt_wide = np.abs(scan_normals(dense, 0.3, 60)[:, 0])
+    assert np.nanmedian(tilt_wide) < 0.2 * np.nanmedian(tilt_narrow)
+
+
+def test_the_far_face_of_a_thin_wall_does_not_attract_a_scan() -> None:
+    """A 0.2 m wall seen from the left in the map (face x = 1.0) and from the right in the scan (face
+    x = 1.2): nearest-point matching drags the scan 0.2 m onto the wrong face; with the scan's normals
+    (facing its sensor, opposite to the map's) those points find no partner and the pose stays put."""
+    y = np.linspace(-1.0, 1.0, 81)
+    floor_x = np.linspace(-1.0, 3.0, 161)
+    floor = np.stack([floor_x, np.full_like(floor_x, -2.0)], axis=1)
+    map_pts = np.concatenate([np.stack([np.full_like(y, 1.0), y], axis=1), floor])
+    map_sensor = np.array([0.0, 0.0])
+    grid = PointGrid.from_points(map_pts, scan_normals(map_pts - map_sensor))
+    scan_sensor = np.array([2.0, 0.0])
+    scan_pts = np.concatenate([np.stack([np.full_like(y, 1.2), y], axis=1), floor]) - scan_sensor
+    nrm = scan_normals(scan_pts)
+    pose = np.array([2.0, 0.0, 0.0])
+    prior_info = np.diag([1.0, 1.0, 100.0])  # a weak prior at the true pose
+    plain = refine_point_to_line(grid, scan_pts, pose, prior_xytheta=pose, prior_information=prior_info)
+    checked = refine_point_to_line(
+        grid, scan_pts, pose, prior_xytheta=pose, prior_information=prior_info, normals_xy=nrm
+    )
+    assert plain.pose_xytheta[0] < 2.0 - 0.15  # dragged onto the wrong face
+    assert abs(checked.pose_xytheta[0] - 2.0) < 0.01
+    assert checked.hessian[0, 0] < 1e-6 * checked.hessian[1, 1]  # the wall's points matched nothing

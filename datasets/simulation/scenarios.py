@@ -333,9 +333,11 @@ def make_two_platform(seed: int = 0, resolution_m: float = 0.1) -> SimulatedRun:
 
 # ------------------------------------------------------------------------------------------------ loop
 # Building-local layout; the world frame puts the robot's start at the origin, heading +x.
-LOOP_SIZE = (80.0, 50.0)
+LOOP_SIZE = (120.0, 50.0)
+LOOP_GLASS_X = (10.0, 110.0)  # the glazed stretch of the south facade
+LOOP_LOBBY_PILLARS_X = (12.0, 18.0, 24.0)
 LOOP_START_LOCAL = (20.0, 7.0)
-LOOP_ROUTE_LOCAL = ((20.0, 7.0), (73.0, 7.0), (73.0, 43.0), (7.0, 43.0), (7.0, 7.0), (45.0, 7.0))
+LOOP_ROUTE_LOCAL = ((20.0, 7.0), (113.0, 7.0), (113.0, 43.0), (7.0, 43.0), (7.0, 7.0), (45.0, 7.0))
 LOOP_LASER = LaserSpec.sweep(
     "/scan",
     360,
@@ -346,6 +348,7 @@ LOOP_LASER = LaserSpec.sweep(
     bearing_variance_rad2=0.0,
     rate_hz=2.0,
 )
+TRANSPARENT_KINDS = ("glass",)  # occupied in the ground truth, invisible to the laser
 LOOP_LASER_IN_BASE = np.array([0.15, 0.0, 0.0])
 LOOP_SPEED_MPS = 1.0
 LOOP_ODOM_RATE_HZ = 20.0
@@ -355,7 +358,7 @@ LOOP_ODOMETRY_NOISE = OdometryNoise(
     lateral_variance_m2_per_m=0.005**2,
     rotation_variance_rad2_per_rad=0.02**2,
     rotation_variance_rad2_per_m=0.002**2,
-    distance_scale_error=0.01,
+    distance_scale_error=0.02,
     rotation_scale_error=0.01,
     yaw_bias_rad_per_m=0.0003,
 )
@@ -403,46 +406,59 @@ def _rooms_along(
 
 
 def loop_world(seed: int = 0) -> World:
-    """An office floor of 80 m x 50 m: a ring of 3 m corridors and a 12.5 m pillared hall around a core,
-    rooms with open and closed doors, furniture, wall columns and a chamfered corner."""
+    """An office floor of 120 m x 50 m: a ring of 3 m corridors around a core, and a 12.5 m x 120 m
+    gallery along the south facade.
+
+    The north, west and east corridors have rooms with open and closed doors, furniture, wall columns and
+    cabinets, and a chamfered corner. The gallery runs between a glazed facade (``glass``: occupied in the
+    ground truth, no laser returns) and the smooth blank wall of the core's closed labs, with nothing in
+    it: beyond 30 m from both of its ends a scan fixes the robot across the gallery and its heading, but
+    not its position along it, which only the wheels measure there.
+    """
     layout = _rng(LAYOUT_SEED, 0, 3)
     dressing = _rng(seed, _DRESSING, 3)
     b = _Builder()
     w, h = LOOP_SIZE
-    # outer walls
-    for p, q in (((0, 0), (w, 0)), ((w, 0), (w, h)), ((w, h), (0, h)), ((0, h), (0, 0))):
+    gx0, gx1 = LOOP_GLASS_X
+    # outer walls; the south facade is glazed in its middle part
+    outer = (((w, 0), (w, h)), ((w, h), (0, h)), ((0, h), (0, 0)), ((0, 0), (gx0, 0)), ((gx1, 0), (w, 0)))
+    for p, q in outer:
         b.add(wall(p, q, 0.3), "wall")
+    b.add(box(gx0, -0.1, gx1, 0.1), "glass")  # panes and mullions: 0.2 m deep, so that it rasterises
     # outer rooms (north, west, east), their doors open on the corridor
-    _rooms_along(b, layout, dressing, ((5.5, 44.5), (74.5, 44.5)), h, "x")
+    _rooms_along(b, layout, dressing, ((5.5, 44.5), (w - 5.5, 44.5)), h, "x")
     _rooms_along(b, layout, dressing, ((5.5, 12.5), (5.5, 44.5)), 0.0, "y")
-    _rooms_along(b, layout, dressing, ((74.5, 12.5), (74.5, 44.5)), w, "y")
+    _rooms_along(b, layout, dressing, ((w - 5.5, 12.5), (w - 5.5, 44.5)), w, "y")
     b.add(wall((0.0, 12.5), (5.5, 12.5), 0.2), "wall")
-    b.add(wall((74.5, 12.5), (w, 12.5), 0.2), "wall")
-    # core: inner rooms around a closed service block
-    _rooms_along(b, layout, dressing, ((8.5, 12.5), (71.5, 12.5)), 18.5, "x")
-    _rooms_along(b, layout, dressing, ((8.5, 41.5), (71.5, 41.5)), 35.5, "x")
+    b.add(wall((w - 5.5, 12.5), (w, 12.5), 0.2), "wall")
+    # core: inner rooms on the north, west and east corridors, closed labs behind the gallery's blank wall
+    b.add(wall((8.5, 12.5), (w - 8.5, 12.5), 0.2), "wall")
+    _rooms_along(b, layout, dressing, ((8.5, 41.5), (w - 8.5, 41.5)), 35.5, "x")
     _rooms_along(b, layout, dressing, ((8.5, 18.5), (8.5, 35.5)), 14.5, "y")
-    _rooms_along(b, layout, dressing, ((71.5, 18.5), (71.5, 35.5)), 65.5, "y")
-    for p, q in (((14.5, 18.5), (65.5, 18.5)), ((65.5, 18.5), (65.5, 35.5))):
+    _rooms_along(b, layout, dressing, ((w - 8.5, 18.5), (w - 8.5, 35.5)), w - 14.5, "y")
+    for p, q in (((8.5, 18.5), (w - 8.5, 18.5)), ((w - 14.5, 18.5), (w - 14.5, 35.5))):
         b.add(wall(p, q, 0.3), "wall")
-    for p, q in (((65.5, 35.5), (14.5, 35.5)), ((14.5, 35.5), (14.5, 18.5))):
+    for p, q in (((w - 14.5, 35.5), (14.5, 35.5)), ((14.5, 35.5), (14.5, 18.5))):
         b.add(wall(p, q, 0.3), "wall")
-    # the hall: two rows of pillars, square and round
-    for k, x in enumerate(np.arange(12.0, 69.0, 6.0)):
+    for p, q in (((8.5, 12.5), (8.5, 18.5)), ((w - 8.5, 12.5), (w - 8.5, 18.5))):
+        b.add(wall(p, q, 0.2), "wall")
+    # irregular corridor walls: columns and cabinets against the walls, a chamfered corner
+    xs = np.arange(10.0, w - 10.0, 7.0)
+    for x in xs + layout.uniform(-1.5, 1.5, len(xs)):
+        b.add(box(x, 44.5 - 0.1 - 0.35, x + 0.4, 44.5 - 0.1), "column")
+    for y in np.arange(16.0, 40.0, 8.0) + layout.uniform(-1.0, 1.0, 3):
+        b.add(box(8.5 + 0.1, y, 8.5 + 0.1 + 0.45, y + 1.2), "cabinet")
+    for y in np.arange(20.0, 42.0, 9.0) + layout.uniform(-1.0, 1.0, 3):
+        b.add(box(w - 5.5 - 0.1 - 0.3, y, w - 5.5 - 0.1, y + 0.4), "column")
+    b.add(wall((w - 11.5, 41.4), (w - 8.6, 38.5), 0.2), "wall")
+    # the gallery's west end is a lobby with two rows of pillars, square and round
+    for k, x in enumerate(LOOP_LOBBY_PILLARS_X):
         for y in (3.5, 10.0):
             if k % 2 == 0:
                 b.add(box(x - 0.3, y - 0.3, x + 0.3, y + 0.3), "pillar")
             else:
                 b.add(regular_polygon((x, y), 0.35, 12), "pillar")
-    # irregular corridor walls: columns and cabinets against the walls, a chamfered corner
-    for x in np.arange(10.0, 70.0, 7.0) + layout.uniform(-1.5, 1.5, 9):
-        b.add(box(x, 44.5 - 0.1 - 0.35, x + 0.4, 44.5 - 0.1), "column")
-    for y in np.arange(16.0, 40.0, 8.0) + layout.uniform(-1.0, 1.0, 3):
-        b.add(box(8.5 + 0.1, y, 8.5 + 0.1 + 0.45, y + 1.2), "cabinet")
-    for y in np.arange(20.0, 42.0, 9.0) + layout.uniform(-1.0, 1.0, 3):
-        b.add(box(74.5 - 0.1 - 0.3, y, 74.5 - 0.1, y + 0.4), "column")
-    b.add(wall((68.5, 41.4), (71.4, 38.5), 0.2), "wall")
-    for x in (30.0, 50.0):  # benches along the hall's outer wall
+    for x in (2.0, w - 4.0):  # benches at the gallery's ends
         b.add(box(x, 0.15, x + 2.0, 0.65), "bench")
     local = World("loop", tuple(b.polygons), tuple(b.kinds), (0.0, 0.0, w, h))
     sx, sy = LOOP_START_LOCAL
@@ -472,8 +488,10 @@ def _wiggle(path: SmoothPath, s: FloatArray, amplitude_m: float, wavelength_m: f
 
 
 def make_loop(seed: int = 0, resolution_m: float = 0.1) -> SimulatedRun:
-    """A ~230 m loop through the office floor at 1 m/s: 360-beam 30 m scans at 2 Hz, wheel odometry at 20 Hz
-    with drift (:data:`LOOP_ODOMETRY_NOISE`), the last 25 m driven twice so the loop can be closed."""
+    """A ~310 m loop through the office floor at 1 m/s: 360-beam 30 m scans at 2 Hz, wheel odometry at 20 Hz
+    with drift (:data:`LOOP_ODOMETRY_NOISE`, 2 % scale error), the last 25 m (through the lobby) driven
+    twice so the loop can be closed. Glass gives no returns (the beams go through: nothing outside), so
+    along the middle of the gallery only the wheels measure the travel."""
     world = loop_world(seed)
     sx, sy = LOOP_START_LOCAL
     path = SmoothPath([(x - sx, y - sy) for x, y in LOOP_ROUTE_LOCAL], corner_radius_m=1.2)
@@ -498,7 +516,13 @@ def make_loop(seed: int = 0, resolution_m: float = 0.1) -> SimulatedRun:
         laser_in_base_xytheta=LOOP_LASER_IN_BASE.copy(),
         odometry_noise=LOOP_ODOMETRY_NOISE,
     )
-    ranges = scan_platforms(world, [robot], [_rng(seed, _LASER, 0)])
+    opaque = World(
+        "loop",
+        tuple(p for p, k in zip(world.polygons, world.kinds, strict=True) if k not in TRANSPARENT_KINDS),
+        tuple(k for k in world.kinds if k not in TRANSPARENT_KINDS),
+        world.bounds_xy_m,
+    )
+    ranges = scan_platforms(opaque, [robot], [_rng(seed, _LASER, 0)])
     return assemble("loop", seed, world, [robot], ranges, resolution_m)
 
 
