@@ -103,11 +103,8 @@ def parse_perturbation(text: str | None) -> tuple[float, float] | None:
     """``"SIGMA_XY_M,SIGMA_THETA_RAD"`` (None passes through); PipelineError if malformed."""
     if text is None:
         return None
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 2 or not all(np.isfinite(v) and v >= 0 for v in values):
+    values = ms.parse_numbers(text, 2)
+    if values is None or not all(v >= 0 for v in values):
         raise PipelineError(
             f"--perturb-poses must be SIGMA_XY_M,SIGMA_THETA_RAD (two numbers >= 0), got {text!r}"
         )

@@ -29,6 +29,15 @@ MAPPERS = ("gppol", "gpfol")
 Bounds = tuple[float, float, float, float]
 
 
+def parse_numbers(text: str, count: int) -> list[float] | None:
+    """``count`` comma-separated finite numbers of a command-line option, or None if ``text`` is not that."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        return None
+    return values if len(values) == count and all(np.isfinite(values)) else None
+
+
 def load_params(cfg: MappingConfig) -> GPParams | None:
     """The stored GP parameters of ``cfg.params_file`` (None when not set); ConfigError if unreadable."""
     if cfg.params_file is None:

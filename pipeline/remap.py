@@ -63,11 +63,8 @@ def parse_bounds(text: str | None) -> ms.Bounds | None:
     """``"XMIN,YMIN,XMAX,YMAX"`` in metres (None passes through); PipelineError if malformed."""
     if text is None:
         return None
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 4 or not (values[2] > values[0] and values[3] > values[1]):
+    values = ms.parse_numbers(text, 4)
+    if values is None or not (values[2] > values[0] and values[3] > values[1]):
         raise PipelineError(
             f"--bounds must be XMIN,YMIN,XMAX,YMAX with XMAX > XMIN and YMAX > YMIN, got {text!r}"
         )
