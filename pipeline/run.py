@@ -137,10 +137,10 @@ def select_scans(first_poses: np.ndarray, laser_in_base: np.ndarray, cfg) -> np.
 
 def tiles_summary(maps: dict[str, IncrementalMap], config: Config) -> dict[str, Any]:
     """``summary.json["tiles"]``: the tiling and the engine of the maps. ``rendering`` is ``"whole map"``
-    when the serial engine rendered each map at once (then no tile has its own support: the per-tile figures
-    are None), else ``"tile by tile"``."""
+    when the serial engine rendered each map at once and the tiled maps adopted it (then no tile has its own
+    support: the per-tile figures are None), else ``"tile by tile"``."""
     first = next(iter(maps.values()))
-    whole = all(not m.support_beams.any() for m in maps.values())
+    whole = all(m.adopted for m in maps.values())
     return {
         "tile_cells": config.scale.tile_cells,
         "count": len(first.grid),

@@ -102,6 +102,7 @@ class IncrementalMap:
         self.rho_free = np.full(len(grid), np.nan)
         self.support_beams = np.zeros(len(grid), np.int64)
         self.tile_seconds = np.zeros(len(grid))
+        self.adopted = False  # the sink holds a rendering made elsewhere (adopt_rendered)
         self.cov_xytheta = None if cov_xytheta is None else np.asarray(cov_xytheta, dtype=np.float64)
         self._set_beams(beams)
 
@@ -120,19 +121,16 @@ class IncrementalMap:
         """Declare that the sink already holds a full rendering of :attr:`beams` (same grid, mapper and
         parameters, e.g. a run's map read back). The tiles' radii, which updates need, are computed on the
         first update (a map that is only written out never pays for them)."""
-        self._radii_pending = True
+        self.adopted = True
 
     def ensure_radii(self) -> None:
         """Compute the support radii of tiles adopted by :meth:`adopt_rendered` (done by the first update)."""
-        if not getattr(self, "_radii_pending", False):
+        if not self.adopted:
             return
         s = self.index.scratch()
-        for t in range(len(self.grid)):
-            if np.isnan(self.rho_occ[t]):
-                self.rho_occ[t], self.rho_free[t] = self.index.tile_radii(
-                    self.rects[t], self.k_occ, self.k_free, s
-                )
-        self._radii_pending = False
+        for t in np.flatnonzero(np.isnan(self.rho_occ)):
+            radii = self.index.tile_radii(self.rects[t], self.k_occ, self.k_free, s)
+            self.rho_occ[t], self.rho_free[t] = radii
 
     def _render(self, tiles: NDArray[np.int64], on_tile: OnTile = None) -> int:
         job = RenderJob(self.index, self.grid, self.factory, self.cov_xytheta, self.k_occ, self.k_free)
