@@ -300,7 +300,8 @@ def test_run_summary_reports_its_tiles(loop_run) -> None:
 @pytest.mark.slow
 def test_remap_after_a_local_correction_recomputes_only_the_tiles_it_reaches(loop_run, tmp_path) -> None:
     """A loop-closure-like correction of part of the trajectory: the incremental remap (on a local Dask
-    cluster) equals a full serial recomputation bit for bit and re-renders a fraction of the tiles."""
+    cluster) equals a full serial recomputation (tests/layer_checks.py) and re-renders a fraction of the
+    tiles."""
     from slam.trajectory_io import read_tum, write_tum
 
     stamps, poses = read_tum(loop_run / "trajectory/optimized.tum")
