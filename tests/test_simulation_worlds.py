@@ -299,7 +299,7 @@ def test_loop_is_long_dense_and_revisits_its_start(loop: SimulatedRun) -> None:
     kinds = set(loop.world.kinds)
     assert {"wall", "pillar", "furniture", "column", "glass"} <= kinds
     # the glazed facade is in the ground truth but returns nothing: no end point lies on it
-    glass = [p for p, k in zip(loop.world.polygons, loop.world.kinds, strict=True) if k == "glass"]
+    glass = loop.world.select("glass")
     gx0, gy0 = np.min(np.concatenate(glass), axis=0)
     gx1, gy1 = np.max(np.concatenate(glass), axis=0)
     assert loop.ground_truth.occupied_at(np.array([[(gx0 + gx1) / 2, (gy0 + gy1) / 2]])).all()

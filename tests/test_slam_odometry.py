@@ -79,7 +79,8 @@ def test_odometry_on_the_loop_world_with_and_without_wheels() -> None:
     wheel = wheel_poses_at_scans(rec.odometry, sc.stamps_ns)
     with_wheels = run_odometry(pts, wheel, cfg)
     without = run_odometry(pts, None, cfg)
-    # the glazed gallery (world x 30..90 m) is degenerate along its axis: there the chain follows its
+    # the stretch of the glazed gallery scored here (world x 30..90 m; the glass spans -10..90 m) is
+    # degenerate along its axis where no end wall is in range: there the chain follows its
     # prediction (the wheels' 2 % scale error, ~1 m over 60 m) and its covariance says so (sd ~6 cm per
     # scan along the gallery, ~1 mm across it and ~7 mm along elsewhere); measured 0.38 m ATE with
     # wheels, 0.16 m with a constant-velocity prediction (the true speed is constant), 1.23 m wheels alone

@@ -9,7 +9,7 @@ ground-truth raster and the ray caster agree on what is solid.
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -151,3 +151,10 @@ class World:
     def select(self, kind: str) -> list[FloatArray]:
         """The polygons of one kind."""
         return [p for p, k in zip(self.polygons, self.kinds, strict=True) if k == kind]
+
+    def without(self, *kinds: str) -> World:
+        """This world without the polygons of ``kinds`` (e.g. what a laser sees: no glass)."""
+        keep = [i for i, k in enumerate(self.kinds) if k not in kinds]
+        return replace(
+            self, polygons=tuple(self.polygons[i] for i in keep), kinds=tuple(self.kinds[i] for i in keep)
+        )

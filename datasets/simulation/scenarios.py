@@ -210,7 +210,7 @@ def street_world(seed: int = 0) -> World:
     for north in (False, True):
         cuts = [xmin]
         for x0, x1, where in STREET_SIDE_X:
-            if where == "both" or (where == "north") == north:
+            if (where == "north") == north:
                 cuts += [x0, x1]
         cuts.append(xmax)
         for a, c in zip(cuts[0::2], cuts[1::2], strict=True):
@@ -223,11 +223,7 @@ def street_world(seed: int = 0) -> World:
     walk_main, walk_side = STREET_SIDEWALK_M
     for north in (False, True):
         kerb_y = yn - walk_main if north else ys + walk_main
-        mouths = [
-            (x0 - 5.0, x1 + 5.0)
-            for x0, x1, where in STREET_SIDE_X
-            if where == "both" or (where == "north") == north
-        ]
+        mouths = [(x0 - 5.0, x1 + 5.0) for x0, x1, where in STREET_SIDE_X if (where == "north") == north]
         _park_along(
             b, dressing, (xmin, kerb_y), (xmax, kerb_y), (0.0, -1.0 if north else 1.0), mouths,
             gaps_m=STREET_PARKING_GAPS_M,
@@ -235,7 +231,7 @@ def street_world(seed: int = 0) -> World:
     # side streets, both kerbs, from the junction outwards
     for x0, x1, where in STREET_SIDE_X:
         for north in (True, False):
-            if where != "both" and (where == "north") != north:
+            if (where == "north") != north:
                 continue
             y_start, y_end = (yn + 5.0, ymax) if north else (ys - 5.0, ymin)
             for kerb_x, into in ((x0 + walk_side, 1.0), (x1 - walk_side, -1.0)):
@@ -516,12 +512,7 @@ def make_loop(seed: int = 0, resolution_m: float = 0.1) -> SimulatedRun:
         laser_in_base_xytheta=LOOP_LASER_IN_BASE.copy(),
         odometry_noise=LOOP_ODOMETRY_NOISE,
     )
-    opaque = World(
-        "loop",
-        tuple(p for p, k in zip(world.polygons, world.kinds, strict=True) if k not in TRANSPARENT_KINDS),
-        tuple(k for k in world.kinds if k not in TRANSPARENT_KINDS),
-        world.bounds_xy_m,
-    )
+    opaque = world.without(*TRANSPARENT_KINDS)
     ranges = scan_platforms(opaque, [robot], [_rng(seed, _LASER, 0)])
     return assemble("loop", seed, world, [robot], ranges, resolution_m)
 
