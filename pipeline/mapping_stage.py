@@ -104,6 +104,8 @@ def fit_params(
     bounds = {k: v for k, v in cfg.kernel_bounds.items() if k in names} or None
     inputs = None
     if gppol:
+        # training reads the first train_scans scans only (train_gp): their beams alone go through the UT
+        beams = beams.select_scans(np.unique(beams.scan_index)[: cfg.train_scans])
         inputs = gaussian_inputs(beams, cfg, cov_xytheta, make_kernel(kernel_name))
     try:
         return train_gp(
