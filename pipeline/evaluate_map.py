@@ -31,7 +31,7 @@ from datasets.errors import DatasetError
 from datasets.types import Recording
 from mapping.beams import Beams, compose_laser_poses
 from mapping.config import MappingConfig, SourceNoiseConfig
-from mapping.evaluation import holdout_split, holdout_test_points, is_carmen_180, raster_cell_centres
+from mapping.evaluation import holdout_split, holdout_test_points, is_carmen_180
 from mapping.metrics import roc_auc
 from pipeline import mapping_stage as ms
 from pipeline.config import load_config
@@ -39,7 +39,6 @@ from pipeline.errors import PipelineError
 from pipeline.progress import Progress
 
 DEFAULT_SEEDS = [0, 1, 2, 3, 4]
-MAPPERS = ("gppol", "gpfol")
 PERTURB_SEED_BASE = 1_000_000
 
 
@@ -123,7 +122,7 @@ def _map_and_score(
 ) -> dict[str, Any]:
     """Train and query GPPOL and GPFOL, build the grid, score the three; times and parameters."""
     row: dict[str, Any] = {}
-    for mapper in MAPPERS:
+    for mapper in ms.MAPPERS:
         t0 = time.perf_counter()
         params = ms.fit_params(beams, cfg, seed_offset, mapper=mapper, cov_xytheta=cov)
         t1 = time.perf_counter()
@@ -200,6 +199,7 @@ def ground_truth_noise(cfg: MappingConfig, gt: Any) -> MappingConfig:
 def evaluate_ground_truth(
     rec: Recording,
     base_poses: np.ndarray,
+    gt: Any,
     gt_path: Path,
     cfg: MappingConfig,
     progress: Progress,
@@ -207,19 +207,13 @@ def evaluate_ground_truth(
     perturb_poses: tuple[float, float] | None = None,
     every: int = 1,
 ) -> dict[str, Any]:
-    """Score the cells of the ground-truth raster ``gt_path`` (SPEC section 6, simulated worlds; ``every``
-    > 1 scores every ``every``-th row and column only, for quick checks).
+    """Score the cells of the ground-truth raster ``gt`` (read from ``gt_path``; SPEC section 6, simulated
+    worlds; ``every`` > 1 scores every ``every``-th row and column only, for quick checks).
     Laser noise from the ground truth."""
-    from datasets.simulation import load_ground_truth
-
-    gt = load_ground_truth(gt_path)
     cfg = ground_truth_noise(cfg, gt)
     occ = np.asarray(gt.occupancy).astype(bool)
-    res = float(gt.resolution_m)
-    origin = np.asarray(gt.origin_xy_m, dtype=np.float64)
-    h, w = occ.shape
-    bounds = (origin[0], origin[1], origin[0] + w * res, origin[1] + h * res)
-    centres = raster_cell_centres(occ.shape, origin, res).reshape(h, w, 2)[::every, ::every].reshape(-1, 2)
+    bounds = gt.bounds_xy_m
+    centres = gt.cell_centers_xy_m()[::every, ::every].reshape(-1, 2)
     labels = occ[::every, ::every].ravel()
     poses = base_poses
     if perturb_poses is not None:
@@ -231,13 +225,6 @@ def evaluate_ground_truth(
         bar.advance()
     noise = {name: s.model_dump() for name, s in cfg.sources.items()}
     return {"per_seed": [row], "sensor_noise": noise, "sensor_noise_from": str(gt_path)}
-
-
-def _ground_truth_sources(gt_path: Path) -> int:
-    """Number of laser sources the simulator recorded in the ground truth ``gt_path``."""
-    from datasets.simulation import load_ground_truth
-
-    return len(load_ground_truth(gt_path).sources or ())
 
 
 def evaluate_map(
@@ -253,22 +240,24 @@ def evaluate_map(
 
     ``perturb_poses``: ``(sigma_xy_m, sigma_theta_rad)`` or its text form (module docstring)."""
     from datasets.registry import open_dataset
+    from datasets.simulation import load_ground_truth
 
     progress = progress or Progress()
     if isinstance(perturb_poses, str):
         perturb_poses = parse_perturbation(perturb_poses)
     input_path = Path(input_path)
     gt_path = Path(str(input_path) + ".gt.npz")
-    if scan_topic is None and gt_path.is_file() and _ground_truth_sources(gt_path) > 1:
+    gt = load_ground_truth(gt_path) if gt_path.is_file() else None
+    if scan_topic is None and gt is not None and len(gt.sources or ()) > 1:
         scan_topic = "all"  # a simulated world of several platforms is scored on all their scans
     config = load_config(config_path, {"input": {"scan_topic": scan_topic}})
     cfg = config.mapping
     rec = open_dataset(input_path, config.input)
     base_poses, pose_source, cov = mapping_poses(rec, input_path, config.slam, progress)
-    if gt_path.is_file():
+    if gt is not None:
         protocol = "ground_truth"
         used_seeds: list[int] = []
-        out = evaluate_ground_truth(rec, base_poses, gt_path, cfg, progress, cov, perturb_poses)
+        out = evaluate_ground_truth(rec, base_poses, gt, gt_path, cfg, progress, cov, perturb_poses)
     else:
         protocol = "holdout"
         used_seeds = list(seeds) if seeds else list(DEFAULT_SEEDS)
