@@ -32,10 +32,9 @@ import numpy as np
 from datasets.errors import DatasetError
 from mapping.core import gather_batch
 from mapping.gpmap import GPOccupancyMap, grid_centres
-from mapping.grid import OccupancyGrid
 from pipeline.config import load_config
 from pipeline.evaluate_map import make_beams, reference_base_poses
-from pipeline.mapping_stage import build_gp_map, fit_params, gaussian_inputs
+from pipeline.mapping_stage import build_gp_map, build_grid, fit_params, gaussian_inputs
 from pipeline.progress import Progress
 
 DATA_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
@@ -115,10 +114,9 @@ def bench_mapping(progress: Progress | None = None, data_dir: Path | None = None
         with _Timer() as t_full:
             full = gp.render(full_bounds, RESOLUTION_M)
         bar.advance()
-        g = cfg.grid
-        OccupancyGrid.build(beams.subset(np.arange(10)), g.resolution_m, bounds)  # warm-up (compile / cache)
+        build_grid(beams.subset(np.arange(10)), cfg, bounds)  # warm-up (compile / cache)
         with _Timer() as t_grid:
-            grid = OccupancyGrid.build(beams, g.resolution_m, bounds, g.p_occupied, g.p_free, g.p_clamp)
+            grid = build_grid(beams, cfg, bounds)
         bar.advance()
         gppol = _bench_gppol(beams, cfg, bounds, pts, t_gather.wall)
         bar.advance()

@@ -93,10 +93,9 @@ def street_figures(out: Path, seed: int = 0) -> dict[str, Any]:
     params = fit_params(beams, cfg, mapper="gpfol")
     gp = build_gp_map(beams, params, cfg, mapper="gpfol")
     occ = np.asarray(gt.occupancy).astype(bool)
-    h, w = occ.shape
     res = float(gt.resolution_m)
     ox, oy = (float(v) for v in gt.origin_xy_m)
-    bounds = (ox, oy, ox + w * res, oy + h * res)
+    bounds = gt.bounds_xy_m
     layers = gp.render(bounds, res)
     grid = OccupancyGrid.from_config(beams, cfg.grid, bounds)
     narrow = OccupancyGrid.from_config(beams, cfg.grid.model_copy(update={"beam_width_deg": 0.0}), bounds)
@@ -142,9 +141,8 @@ def two_platform_result(seed: int = 0, every: int = 1, config_path: Path | None 
     occ = np.asarray(gt.occupancy).astype(bool)
     res = float(gt.resolution_m)
     origin = np.asarray(gt.origin_xy_m, dtype=np.float64)
-    h, w = occ.shape
-    bounds = (origin[0], origin[1], origin[0] + w * res, origin[1] + h * res)
-    centres = raster_cell_centres(occ.shape, origin, res).reshape(h, w, 2)[::every, ::every]
+    bounds = gt.bounds_xy_m
+    centres = gt.cell_centers_xy_m()[::every, ::every]
     shape = centres.shape[:2]
     centres = centres.reshape(-1, 2)
     labels = occ[::every, ::every].ravel()
