@@ -147,6 +147,14 @@ class MappingConfig(BaseModel):
                 f"gppol_expectation 'girard' is the SE kernel's closed form, not {self.gppol_kernel}"
             )
         for name, (lo, hi) in self.kernel_bounds.items():
+            from mapping.kernels import KERNELS  # only when bounds are given: it loads the compiled core
+
+            known = set(KERNELS[self.kernel].names) | set(KERNELS[self.gppol_kernel].names)
+            if name not in known:
+                raise ValueError(
+                    f"kernel_bounds.{name}: no such hyperparameter of the {self.kernel} or "
+                    f"{self.gppol_kernel} kernel (known: {', '.join(sorted(known))})"
+                )
             if not 0 < lo < hi:
                 raise ValueError(f"kernel_bounds.{name} must be (low, high) with 0 < low < high")
         return self

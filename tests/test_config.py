@@ -53,3 +53,14 @@ def test_not_yaml_is_rejected(tmp_path) -> None:
 def test_missing_file(tmp_path) -> None:
     with pytest.raises(ConfigError, match="no such configuration file"):
         load_config(tmp_path / "absent.yaml")
+
+
+def test_misspelt_kernel_bound_is_rejected(tmp_path) -> None:
+    """A bound on a hyperparameter that neither configured kernel has is a typo, not a silent no-op."""
+    path = tmp_path / "c.yaml"
+    path.write_text("mapping:\n  kernel_bounds:\n    sigam: [0.1, 10]\n")
+    with pytest.raises(ConfigError, match=r"kernel_bounds\.sigam: no such hyperparameter of the nn or se"):
+        load_config(path)
+    path.write_text("mapping:\n  kernel_bounds:\n    sigma: [0.1, 10]\n    length_scale: [0.1, 5]\n")
+    bounds = load_config(path).mapping.kernel_bounds
+    assert bounds == {"sigma": (0.1, 10.0), "length_scale": (0.1, 5.0)}
