@@ -676,7 +676,10 @@ def _raycast_free(
 
 @nb.njit(cache=True)
 def _overlap(score, free, x0, y0, res, points, pose, thr):
+    """``(hits, conflicts)``: points at ``pose`` on a map point (score >= thr), and, when ``free`` has the
+    grid's shape, points elsewhere in cells the map's beams saw free."""
     h, w = score.shape
+    check_free = free.shape[0] == h and free.shape[1] == w
     c = math.cos(pose[2])
     s = math.sin(pose[2])
     hits = 0
@@ -689,7 +692,7 @@ def _overlap(score, free, x0, y0, res, points, pose, thr):
         if 0 <= jx < w and 0 <= jy < h:
             if score[jy, jx] >= thr:
                 hits += 1
-            elif free[jy, jx]:
+            elif check_free and free[jy, jx]:
                 conflicts += 1
     return hits, conflicts
 
@@ -733,34 +736,15 @@ def overlap(
     return int(hits), int(conflicts)
 
 
-@nb.njit(cache=True)
-def _fitness(score: NDArray[np.float32], x0: float, y0: float, res: float, points: FloatArray, pose, thr):
-    h, w = score.shape
-    c = math.cos(pose[2])
-    s = math.sin(pose[2])
-    n_ok = 0
-    tot = 0.0
-    for k in range(points.shape[0]):
-        qx = c * points[k, 0] - s * points[k, 1] + pose[0]
-        qy = s * points[k, 0] + c * points[k, 1] + pose[1]
-        jx = math.floor((qx - x0) / res)
-        jy = math.floor((qy - y0) / res)
-        if 0 <= jx < w and 0 <= jy < h:
-            v = score[jy, jx]
-            tot += v
-            if v >= thr:
-                n_ok += 1
-    return n_ok, tot
-
-
 def fitness(grid: PointGrid, points_xy: FloatArray, pose_xytheta: FloatArray, inlier_m: float = 0.1) -> float:
     """Fraction of points whose nearest map point is within ``inlier_m`` (cell-centre distance)."""
     pts = np.ascontiguousarray(points_xy, dtype=np.float64)
     if pts.shape[0] == 0:
         return 0.0
     thr = math.exp(-(inlier_m**2) / (2.0 * grid.sigma_m**2))
-    n_ok, _ = _fitness(
+    n_ok, _ = _overlap(
         grid.score,
+        np.zeros((0, 0), dtype=np.bool_),
         float(grid.origin_xy_m[0]),
         float(grid.origin_xy_m[1]),
         grid.resolution_m,

@@ -10,6 +10,7 @@ from slam import geometry as se2
 from slam.scan_matching import (
     PointGrid,
     correlative_search,
+    fitness,
     mark_free_space,
     overlap,
     refine_point_to_line,
@@ -116,6 +117,9 @@ def test_free_space_check_separates_partial_overlap_from_a_wrong_alignment() -> 
     wrong = se2.compose(query_pose, np.array([0.0, 0.0, np.pi / 2]))
     hits_w, conflicts_w = overlap(grid, scan, wrong)
     assert conflicts_w > 0.3 * (hits_w + conflicts_w)
+    # fitness counts the same hits over all points, and needs no free space
+    assert fitness(grid, scan, query_pose) == hits / scan.shape[0]
+    assert fitness(grid, scan, wrong) == hits_w / scan.shape[0] < 0.5
 
 
 def test_grid_insert_and_reset() -> None:
