@@ -169,8 +169,9 @@ class GraphConfig(BaseModel):
     odometry_cov_scale: float = Field(
         0.5,
         gt=0,
-        description="scale of the alignment covariances in odometry factors (calibrated on the simulated "
-        "loop world, seed 0, for an average NEES of 3 after loop closure)",
+        description="scale of the alignment covariances in odometry factors (chosen on the simulated loop "
+        "world, seed 0: ATE after loop closure 0.041 m, average NEES 1.08 (3 is consistent); 0.3 for both "
+        "scales gives NEES 1.44 but ATE 0.050 m)",
     )
     loop_cov_scale: float = Field(0.5, gt=0, description="scale of loop-closure alignment covariances")
     min_sigma_xy_m: float = Field(0.002, gt=0, description="floor of factor standard deviations, translation")
