@@ -2,8 +2,8 @@
 
 One run of the whole pipeline (read, SLAM, training, maps before and after loop closure, every export) with
 the default configuration into a temporary folder: ``pipeline_intel_wall_s`` is its wall time and
-``pipeline_intel_realtime_factor`` the log's duration (2,691 s) divided by it. When the default mapper has
-not landed yet, GPFOL is used and the result says so. Timings depend on the machine's load.
+``pipeline_intel_realtime_factor`` the log's duration (2,691 s) divided by it; ``pipeline_intel_mapper`` names
+the mapper. Timings depend on the machine's load.
 """
 
 from __future__ import annotations
@@ -14,8 +14,6 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.config import load_config
-from pipeline.errors import NotYetAvailableError
-from pipeline.mapping_stage import check_mapper_available
 from pipeline.progress import Progress
 from pipeline.run import run_pipeline
 
@@ -25,10 +23,6 @@ INTEL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "int
 def bench_pipeline(progress: Progress | None = None, path: str | Path = INTEL) -> dict[str, Any]:
     """Run the full pipeline once on ``path`` (default intel.clf) and report its wall time."""
     mapper = load_config().mapping.mapper
-    try:
-        check_mapper_available(mapper)
-    except NotYetAvailableError:
-        mapper = "gpfol"
     with tempfile.TemporaryDirectory(prefix="gpom-bench-") as tmp:
         t0 = time.perf_counter()
         summary = run_pipeline(Path(path), Path(tmp) / "run", mapper=mapper, progress=progress)

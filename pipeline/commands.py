@@ -3,58 +3,31 @@
 ``run.py`` parses; this module decides what to call. Printing goes through the ``emit_json`` callback or
 :func:`_say`, never from the stages themselves.
 
-Stage entry points live in their own modules, one per command, so that they can land independently:
+Each command's entry point lives in its own module, imported when the command runs (``--help`` stays fast):
 
-=================  ===================================================  =====
-command            entry point                                          issue
-=================  ===================================================  =====
-simulate           ``datasets.simulation.simulate``                     3
-evaluate map       ``pipeline.evaluate_map.evaluate_map``               4
-evaluate slam      ``pipeline.evaluate_slam.evaluate_slam``             6
-bench              ``pipeline.bench.run_bench``                         4-8
-run / demo         ``pipeline.run.run_pipeline`` / ``pipeline.run.run_demo``  7
-remap              ``pipeline.remap.remap_run``                         7
-=================  ===================================================  =====
+=================  =========================================================
+command            entry point
+=================  =========================================================
+simulate           ``datasets.simulation.simulate``
+convert            ``pipeline.convert.convert_recording``
+evaluate map       ``pipeline.evaluate_map.evaluate_map``
+evaluate slam      ``pipeline.evaluate_slam.evaluate_slam``
+bench              ``pipeline.bench.run_bench``
+run / demo         ``pipeline.run.run_pipeline`` / ``pipeline.run.run_demo``
+remap              ``pipeline.remap.remap_run``
+=================  =========================================================
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from collections.abc import Callable
 from typing import Any
 
-from pipeline.errors import not_yet_available
 from pipeline.progress import progress_for_terminal
 
 EmitJson = Callable[[Any], None]
-
-# command -> (module, function, issue, what) of its entry point
-ENTRY_POINTS: dict[str, tuple[str, str, int, str]] = {
-    "simulate": ("datasets.simulation", "simulate", 3, "the simulated worlds"),
-    "evaluate map": ("pipeline.evaluate_map", "evaluate_map", 4, "the GP mapper and map evaluation"),
-    "evaluate slam": ("pipeline.evaluate_slam", "evaluate_slam", 6, "the SLAM back end and its metrics"),
-    "bench": ("pipeline.bench", "run_bench", 4, "the benchmarks"),
-    "run": ("pipeline.run", "run_pipeline", 7, "the full pipeline (read, SLAM, GP maps, exports)"),
-    "demo": ("pipeline.run", "run_demo", 7, "the full pipeline (read, SLAM, GP maps, exports)"),
-    "remap": ("pipeline.remap", "remap_run", 7, "re-mapping from a run folder"),
-}
-
-
-def entry_point(command: str) -> Callable[..., Any]:
-    """The function behind ``command``, or a one-line NotYetAvailableError if its stage has not landed."""
-    module_name, func_name, issue, what = ENTRY_POINTS[command]
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as exc:
-        if exc.name is not None and module_name.startswith(exc.name):
-            raise not_yet_available(command, issue, what) from None
-        raise
-    func = getattr(module, func_name, None)
-    if func is None:
-        raise not_yet_available(command, issue, what)
-    return func
 
 
 def dispatch(args: argparse.Namespace, emit_json: EmitJson) -> int:
@@ -100,7 +73,8 @@ def _report(result: dict[str, Any], args: argparse.Namespace, emit_json: EmitJso
 
 
 def cmd_demo(args: argparse.Namespace, emit_json: EmitJson) -> int:
-    run_demo = entry_point("demo")
+    from pipeline.run import run_demo
+
     result = run_demo(
         out=args.out,
         seed=args.seed,
@@ -112,7 +86,8 @@ def cmd_demo(args: argparse.Namespace, emit_json: EmitJson) -> int:
 
 
 def cmd_run(args: argparse.Namespace, emit_json: EmitJson) -> int:
-    run_pipeline = entry_point("run")
+    from pipeline.run import run_pipeline
+
     result = run_pipeline(
         input_path=args.input,
         out_dir=args.out,
@@ -129,7 +104,8 @@ def cmd_run(args: argparse.Namespace, emit_json: EmitJson) -> int:
 
 
 def cmd_remap(args: argparse.Namespace, emit_json: EmitJson) -> int:
-    remap_run = entry_point("remap")
+    from pipeline.remap import remap_run
+
     result = remap_run(
         run_dir=args.run_dir,
         poses=args.poses,
@@ -146,7 +122,8 @@ def cmd_remap(args: argparse.Namespace, emit_json: EmitJson) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace, emit_json: EmitJson) -> int:
-    simulate = entry_point("simulate")
+    from datasets.simulation import simulate
+
     report = simulate(args.world, args.out, seed=args.seed)
     _say(f"wrote {args.out}: " + ", ".join(f"{k} {v}" for k, v in report.items()))
     return 0
@@ -169,7 +146,8 @@ def cmd_convert(args: argparse.Namespace, emit_json: EmitJson) -> int:
 def cmd_evaluate(args: argparse.Namespace, emit_json: EmitJson) -> int:
     progress = progress_for_terminal(args.quiet or args.json)
     if args.target == "map":
-        evaluate_map = entry_point("evaluate map")
+        from pipeline.evaluate_map import evaluate_map
+
         result = evaluate_map(
             input_path=args.input,
             seeds=args.seed,
@@ -179,7 +157,8 @@ def cmd_evaluate(args: argparse.Namespace, emit_json: EmitJson) -> int:
             scan_topic=args.scan_topic,
         )
         return _report(result, args, emit_json, f"map evaluation of {args.input}")
-    evaluate_slam = entry_point("evaluate slam")
+    from pipeline.evaluate_slam import evaluate_slam
+
     result = evaluate_slam(
         input_path=args.input,
         relations_path=args.relations,
@@ -191,6 +170,7 @@ def cmd_evaluate(args: argparse.Namespace, emit_json: EmitJson) -> int:
 
 
 def cmd_bench(args: argparse.Namespace, emit_json: EmitJson) -> int:
-    run_bench = entry_point("bench")
+    from pipeline.bench import run_bench
+
     result = run_bench(progress=progress_for_terminal(args.quiet or args.json))
     return _report(result, args, emit_json, "benchmarks")
