@@ -1,7 +1,7 @@
 """``bench``: the performance figures of SPEC section 7, measured as benchmarks (never as timed tests).
 
-Each stage contributes one part, a function ``(progress) -> dict`` in its own module, so that parts land
-independently. Keys of SPEC section 3 that no landed part measures yet are reported as ``None``.
+Each stage contributes one part, a function ``(progress) -> dict`` in its own module (mapping, SLAM, the full
+pipeline, scale); their keys are merged into one object with the keys of SPEC section 3 first.
 """
 
 from __future__ import annotations
@@ -40,16 +40,10 @@ def peak_rss_mib() -> float:
 
 
 def run_bench(progress: Progress | None = None) -> dict[str, Any]:
-    """Run every landed benchmark part; returns the SPEC keys (None where not measured) plus extras."""
+    """Run every benchmark part; returns the SPEC keys plus extras."""
     progress = progress or Progress()
     result: dict[str, Any] = dict.fromkeys(SPEC_KEYS)
     for module_name, func_name in PARTS:
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as exc:
-            if exc.name == module_name:
-                continue
-            raise
-        result.update(getattr(module, func_name)(progress))
+        result.update(getattr(importlib.import_module(module_name), func_name)(progress))
     result["peak_rss_mib"] = peak_rss_mib()
     return result
