@@ -7,8 +7,8 @@ lawnmower pattern (~20 km) and scans every 2 m with a 181-beam, 360-degree, 30 m
 Intel ``gfs`` log). GPFOL (hyperparameters learnt by the default training on its first scans) renders it at
 0.1 m, 10,000 x 10,000 = 10^8 cells, in tiles of 128 cells streamed into a :class:`mapping.tiling.TileStore`
 (1.2 GB of float32 layers on disk). This runs in a fresh Python process so that its peak resident memory
-(``getrusage`` max RSS, everything included: world, beams, index, training, rendering) is the map's alone:
-``large_map_peak_rss_mib``; ``tiles_per_s`` is its tile throughput. It takes tens of minutes on 2 cores.
+(its own high-water mark, :func:`pipeline.bench.peak_rss_mib`; everything included: world, beams, index,
+training, rendering) is the map's alone: ``large_map_peak_rss_mib``; ``tiles_per_s`` is its tile throughput. It takes tens of minutes on 2 cores.
 
 Incremental speed-up. The SLAM stage runs on ``intel.clf``; its final pose graph is replayed into iSAM2
 (:class:`slam.graph.PoseGraph`) factor by factor in keyframe order, as an online system builds it. Just before
@@ -32,7 +32,6 @@ import copy
 import itertools
 import json
 import math
-import resource
 import subprocess
 import sys
 import tempfile
@@ -42,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.bench import peak_rss_mib
 from pipeline.progress import Progress
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -172,7 +172,7 @@ def large_map_child(
     back = TileStore.open(Path(out_dir) / "city")
     prob = back.layer("probability")
     sample = np.asarray(prob[:: max(1, grid.shape_hw[0] // 500), :: max(1, grid.shape_hw[1] // 500)])
-    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    peak_mib = peak_rss_mib()
     result = {
         "world": f"synthetic city {size_m:g} m x {size_m:g} m, street pitch {CITY_STREET_PITCH_M:g} m",
         "scans": len(poses),
@@ -193,7 +193,7 @@ def large_map_child(
         "tiles_per_s": len(grid) / t_render,
         "cells_per_s": grid.cells / t_render,
         "total_s": time.perf_counter() - t_start,
-        "peak_rss_mib": kib / 1024.0,
+        "peak_rss_mib": peak_mib,
         "beams_mib": sum(v.nbytes for v in vars(beams).values() if isinstance(v, np.ndarray)) / 2**20,
         "store_bytes": sum(f.stat().st_blocks * 512 for f in (Path(out_dir) / "city").iterdir()),
         "probability_sample_fractions": {

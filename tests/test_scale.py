@@ -382,3 +382,19 @@ def test_large_map_benchmark_machinery_on_a_small_city() -> None:
     assert result["cells"] == 200 * 200 and result["tiles"] == 49 and result["all_tiles_written"]
     assert 0 < result["peak_rss_mib"] < 2048 and result["tiles_per_s"] > 0
     assert result["probability_sample_fractions"]["free (<0.35)"] > 0.05
+
+
+def test_peak_memory_of_a_child_process_is_its_own() -> None:
+    """``large_map_peak_rss_mib`` is measured in a child process: its peak must not start at the parent's
+    resident size (getrusage's max RSS does, after fork + exec)."""
+    import subprocess
+    import sys
+
+    from pipeline.bench import peak_rss_mib
+    from tests.conftest import REPO
+
+    ballast = np.ones(400 * 2**20 // 8)  # 400 MiB resident in this process
+    code = "from pipeline.bench import peak_rss_mib; print(peak_rss_mib())"
+    child = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
+    assert peak_rss_mib() > 400 and float(ballast[-1]) == 1.0
+    assert float(child.stdout) < 300  # an interpreter with numpy, not this process's 400 MiB
