@@ -146,10 +146,11 @@ class MappingConfig(BaseModel):
             raise ValueError(
                 f"gppol_expectation 'girard' is the SE kernel's closed form, not {self.gppol_kernel}"
             )
-        for name, (lo, hi) in self.kernel_bounds.items():
+        if self.kernel_bounds:
             from mapping.kernels import KERNELS  # only when bounds are given: it loads the compiled core
 
             known = set(KERNELS[self.kernel].names) | set(KERNELS[self.gppol_kernel].names)
+        for name, (lo, hi) in self.kernel_bounds.items():
             if name not in known:
                 raise ValueError(
                     f"kernel_bounds.{name}: no such hyperparameter of the {self.kernel} or "
