@@ -121,9 +121,10 @@ def scan_normals(
     beyond the radius). The normal is its direction of least spread; at least ``min_points`` points
     (``i`` included) and ``lambda_min <= max_flatness * lambda_max`` are required. A metric radius
     averages the range noise over many beams of a dense scanner (0.25 deg beams at 1 m are 4 mm apart)
-    and stays local on a sparse one. Normals face ``viewpoint_xy`` (default the origin of the points' frame:
-    odometry and loop closure pass base-frame points, so the base, which sees the same side of a surface as
-    a laser mounted on it), so that the normals of one surface seen in several scans agree in sign. The
+    and stays local on a sparse one. Normals face ``viewpoint_xy`` (default: the origin of the points' frame;
+    odometry and loop closure pass base-frame points, so they face the base, which sees the same side of a
+    surface as the laser mounted on it), so that the normals of one surface seen in several scans agree in
+    sign. The
     pipeline passes ``max_half_window = SlamConfig.odometry.normal_max_neighbours`` (2 by default); 40 is the
     default of this function for dense scanners.
     """
