@@ -8,7 +8,8 @@ Intel ``gfs`` log). GPFOL (hyperparameters learnt by the default training on its
 0.1 m, 10,000 x 10,000 = 10^8 cells, in tiles of 128 cells streamed into a :class:`mapping.tiling.TileStore`
 (1.2 GB of float32 layers on disk). This runs in a fresh Python process so that its peak resident memory
 (its own high-water mark, :func:`pipeline.bench.peak_rss_mib`; everything included: world, beams, index,
-training, rendering) is the map's alone: ``large_map_peak_rss_mib``; ``tiles_per_s`` is its tile throughput. It takes tens of minutes on 2 cores.
+training, rendering) is the map's alone: ``large_map_peak_rss_mib``; ``tiles_per_s`` is its tile throughput.
+It takes tens of minutes on 2 cores.
 
 Incremental speed-up. The SLAM stage runs on ``intel.clf``; its final pose graph is replayed into iSAM2
 (:class:`slam.graph.PoseGraph`) factor by factor in keyframe order, as an online system builds it. Just before
