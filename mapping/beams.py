@@ -18,7 +18,7 @@ covariances are indexed by it) and its sensor (per-source noise settings).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numba as nb
 import numpy as np
@@ -95,6 +95,15 @@ class Beams:
             laser_in_base_xytheta=self.laser_in_base_xytheta,
             source_names=self.source_names,
         )
+
+    def with_free_margin(self, free_margin_m: float) -> Beams:
+        """The same beams with the free part of every return ending ``free_margin_m`` short of its endpoint
+        (no-return beams keep their whole free segment)."""
+        d = self.ends_xy_m - self.origins_xy_m
+        scale = np.ones(len(self))
+        hit = self.is_hit & (self.ranges_m > 0)
+        scale[hit] = np.maximum(self.ranges_m[hit] - free_margin_m, 0.0) / self.ranges_m[hit]
+        return replace(self, free_ends_xy_m=self.origins_xy_m + scale[:, None] * d)
 
     def base_poses_xytheta(self) -> FloatArray:
         """(M, 3) world pose of the base at each beam's scan (the laser pose with the mounting undone)."""

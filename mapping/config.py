@@ -73,6 +73,15 @@ class MappingConfig(BaseModel):
     free_margin_m: float = Field(
         0.1, ge=0, le=10, description="free segments of returns stop this short of the endpoint"
     )
+    train_free_margin_m: float | None = Field(
+        None,
+        ge=0,
+        le=10,
+        description="free_margin_m of the hyperparameter training problems only (null: free_margin_m). "
+        "With an exact laser, free points right up to the surfaces make eq. (9) prefer short length "
+        "scales that shape the local step at a surface rather than the world's structure; training with "
+        "a wider margin than the map uses keeps the length scales of that structure",
+    )
     index_cell_m: float | None = Field(
         None,
         gt=0,

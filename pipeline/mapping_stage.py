@@ -94,7 +94,8 @@ def fit_params(
 ) -> GPParams:
     """Stored parameters if configured, else hyperparameters and PLS link learnt from the first scans for
     ``mapper`` (default ``cfg.mapper``): GPFOL with ``cfg.kernel``; GPPOL with ``cfg.gppol_kernel`` on the
-    beams' input Gaussians (pose covariances ``cov_xytheta`` (N, 3, 3) by scan, None: exact poses)."""
+    beams' input Gaussians (pose covariances ``cov_xytheta`` (N, 3, 3) by scan, None: exact poses). The
+    training problems' free segments stop ``cfg.train_free_margin_m`` short of the endpoints if it is set."""
     stored = load_params(cfg)
     if stored is not None:
         return stored
@@ -102,6 +103,8 @@ def fit_params(
     kernel_name = cfg.gppol_kernel if gppol else cfg.kernel
     names = KERNELS[kernel_name].names
     bounds = {k: v for k, v in cfg.kernel_bounds.items() if k in names} or None
+    if cfg.train_free_margin_m is not None:
+        beams = beams.with_free_margin(cfg.train_free_margin_m)
     inputs = None
     if gppol:
         # training reads the first train_scans scans only (train_gp): their beams alone go through the UT

@@ -56,3 +56,20 @@ def test_scan_indices_and_selection() -> None:
     assert len(b.select_scans([7])) == 2
     with pytest.raises(ValueError, match="3 scans but 2 poses"):
         beams_from_scans(ranges, angles, 0.0, 8.0, np.zeros((2, 3)))
+
+
+def test_with_free_margin_equals_building_with_that_margin() -> None:
+    rng = np.random.default_rng(3)
+    ranges = [np.r_[rng.uniform(0.2, 9.0, 40), np.inf, 0.3]]
+    angles = [np.linspace(-1.5, 1.5, 42)]
+    pose = np.array([[1.0, -2.0, 0.4]])
+    kw = {"no_return_free_length_m": 4.0}
+    narrow = beams_from_scans(ranges, angles, 0.1, 10.0, pose, free_margin_m=0.2, **kw)
+    wide = beams_from_scans(ranges, angles, 0.1, 10.0, pose, free_margin_m=0.5, **kw)
+    again = narrow.with_free_margin(0.5)
+    np.testing.assert_allclose(again.free_ends_xy_m, wide.free_ends_xy_m, atol=1e-12)
+    np.testing.assert_array_equal(again.ends_xy_m, narrow.ends_xy_m)  # endpoints and the rest unchanged
+    assert not np.allclose(narrow.free_ends_xy_m[narrow.is_hit], wide.free_ends_xy_m[wide.is_hit])
+    # the 0.3 m return has no free part left with 0.5 m; the no-return keeps its whole 4 m
+    np.testing.assert_allclose(again.free_ends_xy_m[-1], again.origins_xy_m[-1], atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(again.free_ends_xy_m[-2] - again.origins_xy_m[-2]), 4.0)

@@ -66,6 +66,9 @@ def test_the_widened_grid_scores_like_the_papers_grid(street) -> None:
 
 def test_gpfol_beats_the_grid_as_in_table_one(street) -> None:
     auc, fp = street["gpfol"]
-    assert auc > 0.98  # measured 0.9837 (0.9840 at 0.1 m); the paper: 0.9948. Seeds 0-4: 0.984-0.993
-    assert fp < 0.1  # measured 0.077; the paper: 0.026
+    # the issue's bar; measured 0.9903 here, 0.9902 at 0.1 m; the paper: 0.9948. Seeds 0-4 at 0.1 m:
+    # 0.986-0.994, mean 0.991. With the training problems' free margin equal to the map's (0.15 m) it was
+    # 0.97-0.98; with 0.5 m for both 0.9837 (see mapping/configs/noise_free_simulation.yaml)
+    assert auc > 0.99
+    assert fp < 0.07  # measured 0.055 (0.077 before); the paper: 0.026
     assert auc > street["grid"][0] + 0.08
