@@ -79,12 +79,13 @@ def tile_order(h: int, w: int, tile: int = 16) -> NDArray[np.int64]:
     query's neighbours) and a parallel chunk of ``tile**2`` queries compact, so that the index cells it reads
     stay in cache; raster rows, 30 m long, sweep more cells than the cache holds before the next row reuses
     them. The results do not depend on the order (exact k-NN, independent local GPs)."""
-    r, c = np.divmod(np.arange(h * w, dtype=np.int64), w)
-    rr, cc = r % tile, c % tile
-    cc = np.where(rr % 2 == 1, tile - 1 - cc, cc)
-    tiles_per_row = (w + tile - 1) // tile
-    key = (((r // tile) * tiles_per_row + c // tile) * tile + rr) * tile + cc
-    return np.argsort(key, kind="stable")
+    th, tw = -(-h // tile), -(-w // tile)
+    cells = np.full((th * tile, tw * tile), -1, np.int64)
+    cells[:h, :w] = np.arange(h * w, dtype=np.int64).reshape(h, w)
+    blocks = cells.reshape(th, tile, tw, tile)
+    blocks[:, 1::2] = blocks[:, 1::2, :, ::-1]  # odd rows of each tile right to left
+    blocks = blocks.transpose(0, 2, 1, 3).ravel()
+    return blocks[blocks >= 0]
 
 
 class GPOccupancyMap:

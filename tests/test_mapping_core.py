@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mapping.beams import beams_from_scans
-from mapping.gpmap import GPOccupancyMap, classify
+from mapping.gpmap import GPOccupancyMap, classify, grid_centres, tile_order
 from mapping.kernels import make_kernel
 from mapping.neighbours import BeamIndex
 from mapping.pls import pls_probability
@@ -114,6 +114,28 @@ def test_render_equals_query_at_cell_centres_and_any_resolution() -> None:
     assert fine.probability.shape == (30, 40)
     coarse = list(gp.render_anytime((0.0, 0.0, 4.0, 3.0), (0.1, 1.0)))
     assert [c.resolution_m for c in coarse] == [1.0, 0.1]
+
+
+def test_tile_order_lists_every_cell_tile_by_tile() -> None:
+    # a 4 x 5 grid (cell id = row * 5 + column) in 2 x 2 tiles, odd rows of a tile right to left
+    expected = [0, 1, 6, 5, 2, 3, 8, 7, 4, 9, 10, 11, 16, 15, 12, 13, 18, 17, 14, 19]
+    assert tile_order(4, 5, 2).tolist() == expected
+    order = tile_order(37, 53)
+    assert np.array_equal(np.sort(order), np.arange(37 * 53))
+
+
+def test_render_equals_query_of_all_cell_centres() -> None:
+    """Rendering (queries in tile order) gives each cell what a query of its centre alone gives."""
+    beams = random_beams(6)
+    params = GPParams(make_kernel("nn", {"sigma_0": 3.0, "sigma": 5.0}), 0.05, 2.0, 0.0)
+    gp = GPOccupancyMap(beams, params)
+    bounds = (-1.0, -1.0, 11.0, 10.0)
+    layers = gp.render(bounds, 0.25)
+    pts, _, (h, w) = grid_centres(bounds, 0.25)
+    pred = gp.query(pts, sort=False)
+    for name in ("probability", "mean", "variance"):
+        ref = getattr(pred, name).reshape(h, w).astype(np.float32)
+        np.testing.assert_array_max_ulp(getattr(layers, name), ref, maxulp=2)
 
 
 def test_duplicate_training_points_do_not_break_the_solve() -> None:
