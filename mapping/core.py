@@ -7,7 +7,7 @@ of ``K + sigma_n^2 I`` (jitter added and the factorisation retried if it fails),
 ``p = Phi((alpha mu + beta) / sqrt(1 + alpha^2 (sigma^2 + sigma_n^2)))`` (SPEC section 5, R&W eq. 6.42).
 
 Two paths share the same steps. The fast path, :func:`predict_batch`, solves LANES = 32 queries together
-(lane index innermost, so that LLVM vectorises the kernel blocks, the Cholesky and the solves:
+(lane index innermost, so that LLVM vectorises the kernel blocks, the Cholesky and the two solves:
 ``_kernel_lanes``, ``_cholesky_lanes``, ``_forward_lanes``); the scalar path (``_kernel_blocks``,
 ``_solve_local``) redoes, alone and with jitter, a query whose factorisation failed.
 
@@ -267,18 +267,38 @@ def _kernel_lanes(kid, kp, XL, mask, n, K, ks, s):
 @nb.njit(cache=True, error_model="numpy", fastmath=True)
 def _cholesky_lanes(K, n, invd, acc, ok):
     """In-place lower Cholesky of LANES matrices K[:n, :n, lane] (lower triangles); ``invd`` (n, LANES)
-    receives 1 / L_ii. ``ok[lane]`` is set False where a pivot is not positive (that lane is garbage)."""
+    receives 1 / L_ii; ``acc`` (2, LANES) is scratch. ``ok[lane]`` is set False where a pivot is not
+    positive (that lane is garbage).
+
+    Row by row (Cholesky-Banachiewicz), two off-diagonal entries j, j + 1 of a row at a time: they share the
+    loads of row i and halve the inner loops, while each entry still subtracts its products in the order
+    m = 0, 1, ..., so the factor is bit for bit that of one entry at a time."""
     nlanes = K.shape[2]
     for i in range(n):
-        for j in range(i + 1):
+        j = 0
+        while j + 1 < i:
             for lane in range(nlanes):
-                acc[lane] = K[i, j, lane]
+                acc[0, lane] = K[i, j, lane]
+                acc[1, lane] = K[i, j + 1, lane]
             for m in range(j):
                 for lane in range(nlanes):
-                    acc[lane] -= K[i, m, lane] * K[j, m, lane]
+                    a = K[i, m, lane]
+                    acc[0, lane] -= a * K[j, m, lane]
+                    acc[1, lane] -= a * K[j + 1, m, lane]
+            for lane in range(nlanes):
+                lij = acc[0, lane] * invd[j, lane]
+                K[i, j, lane] = lij
+                K[i, j + 1, lane] = (acc[1, lane] - lij * K[j + 1, j, lane]) * invd[j + 1, lane]
+            j += 2
+        while j <= i:
+            for lane in range(nlanes):
+                acc[0, lane] = K[i, j, lane]
+            for m in range(j):
+                for lane in range(nlanes):
+                    acc[0, lane] -= K[i, m, lane] * K[j, m, lane]
             if i == j:
                 for lane in range(nlanes):
-                    v = acc[lane]
+                    v = acc[0, lane]
                     bad = not (v > 0.0)
                     ok[lane] = ok[lane] and not bad
                     d = math.sqrt(v if not bad else 1.0)
@@ -286,21 +306,27 @@ def _cholesky_lanes(K, n, invd, acc, ok):
                     invd[i, lane] = 1.0 / d
             else:
                 for lane in range(nlanes):
-                    K[i, j, lane] = acc[lane] * invd[j, lane]
+                    K[i, j, lane] = acc[0, lane] * invd[j, lane]
+            j += 1
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath=True)
-def _forward_lanes(K, n, invd, b, out):
-    """Solve L out[:, lane] = b[:, lane] for the LANES lower factors in K."""
+def _forward_lanes(K, n, invd, b1, out1, b2, out2):
+    """Solve L out1[:, lane] = b1[:, lane] and L out2[:, lane] = b2[:, lane] for the LANES lower factors in K
+    (both in one pass over L)."""
     nlanes = K.shape[2]
     for i in range(n):
         for lane in range(nlanes):
-            out[i, lane] = b[i, lane]
+            out1[i, lane] = b1[i, lane]
+            out2[i, lane] = b2[i, lane]
         for m in range(i):
             for lane in range(nlanes):
-                out[i, lane] -= K[i, m, lane] * out[m, lane]
+                k = K[i, m, lane]
+                out1[i, lane] -= k * out1[m, lane]
+                out2[i, lane] -= k * out2[m, lane]
         for lane in range(nlanes):
-            out[i, lane] *= invd[i, lane]
+            out1[i, lane] *= invd[i, lane]
+            out2[i, lane] *= invd[i, lane]
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -544,7 +570,7 @@ def predict_batch(
         invd = np.empty((nmax, LANES))
         vL = np.empty((nmax, LANES))
         wL = np.empty((nmax, LANES))
-        acc = np.empty(LANES)
+        acc = np.empty((2, LANES))
         ok = np.empty(LANES, np.bool_)
         counts = np.zeros(LANES, np.int64)
         warm_o = np.empty(max(k_occ, 1), np.int64)
@@ -626,8 +652,7 @@ def predict_batch(
             for lane in range(LANES):
                 ok[lane] = True
             _cholesky_lanes(KL, nfill, invd, acc, ok)
-            _forward_lanes(KL, nfill, invd, ksL, vL)
-            _forward_lanes(KL, nfill, invd, yL, wL)
+            _forward_lanes(KL, nfill, invd, ksL, vL, yL, wL)
             for lane in range(nl):
                 q = base + lane
                 if ok[lane]:
