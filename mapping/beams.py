@@ -100,9 +100,8 @@ class Beams:
         """The same beams with the free part of every return ending ``free_margin_m`` short of its endpoint
         (no-return beams keep their whole free segment)."""
         d = self.ends_xy_m - self.origins_xy_m
-        scale = np.ones(len(self))
-        hit = self.is_hit & (self.ranges_m > 0)
-        scale[hit] = np.maximum(self.ranges_m[hit] - free_margin_m, 0.0) / self.ranges_m[hit]
+        free_len = free_lengths_m(self.ranges_m, self.is_hit, free_margin_m)
+        scale = np.divide(free_len, self.ranges_m, out=np.ones(len(self)), where=self.ranges_m > 0)
         return replace(self, free_ends_xy_m=self.origins_xy_m + scale[:, None] * d)
 
     def base_poses_xytheta(self) -> FloatArray:
@@ -163,6 +162,12 @@ def compose_laser_poses(poses_xytheta: FloatArray, laser_in_base_xytheta: FloatA
     out[:, 1] = p[:, 1] + s * m[0] + c * m[1]
     out[:, 2] = p[:, 2] + m[2]
     return out
+
+
+def free_lengths_m(lengths_m: FloatArray, is_hit: NDArray[np.bool_], free_margin_m: float) -> FloatArray:
+    """(M,) length of the free part of (M,) beams: a return's stops ``free_margin_m`` short of its endpoint
+    (never below 0), a no-return beam is free along its whole length."""
+    return np.where(is_hit, np.maximum(lengths_m - free_margin_m, 0.0), lengths_m)
 
 
 def beams_from_scans(
@@ -226,7 +231,7 @@ def beams_from_scans(
     u = np.stack([np.cos(ang), np.sin(ang)], axis=1)
     origins = pose[:, :2].copy()
     ends = origins + length[:, None] * u
-    free_len = np.where(hit, np.maximum(length - free_margin_m, 0.0), length)
+    free_len = free_lengths_m(length, hit, free_margin_m)
     free_ends = origins + free_len[:, None] * u
     return Beams(
         origins_xy_m=origins,

@@ -77,7 +77,8 @@ class MappingConfig(BaseModel):
         None,
         ge=0,
         le=10,
-        description="free_margin_m of the hyperparameter training problems only (null: free_margin_m). "
+        description="free_margin_m of the training problems only (kernel hyperparameters and PLS link; "
+        "null: free_margin_m). "
         "With an exact laser, free points right up to the surfaces make eq. (9) prefer short length "
         "scales that shape the local step at a surface rather than the world's structure; training with "
         "a wider margin than the map uses keeps the length scales of that structure",
