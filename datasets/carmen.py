@@ -45,8 +45,11 @@ monotone in real logs, so the rule is:
   records are re-stamped between their neighbours in line order); ``meta["restamped"]`` counts them
   (intel.clf: 787 of 13,631 scans, 1,250 of 26,915 ODOM records).
 
-To find the scans of a corrected keyframe log in its raw log use :func:`match_scans`, not the nearest
-logger stamp (corrected logs round stamps to 6 significant digits; see there).
+To find the scans of a corrected keyframe log in its raw log use :func:`match_keyframe_scans` (or
+:func:`match_scans` for the indices alone; both in :mod:`datasets.keyframe_match`, re-exported here), not
+the nearest logger stamp: corrected logs round stamps to 6 significant digits, and some carry relative,
+synthetic or unreliable stamps, so scans are matched by content within the stamp window, else by content
+and line order.
 
 In a corrected log the ODOM records are the SLAM's pose estimates, not wheel odometry; they are still
 returned as ``odometry`` (``meta["odometry_is_corrected"]`` says so).
@@ -65,6 +68,7 @@ from numpy.typing import NDArray
 
 from datasets.config import InputConfig
 from datasets.errors import DatasetError
+from datasets.keyframe_match import ScanMatch, match_keyframe_scans, match_scans
 from datasets.numtext import NumberParseError, parse_floats, parse_stamps_ns
 from datasets.stamps import NS_PER_S, monotone_stamps_ns, ns_to_decimal
 from datasets.types import Recording, ScanSequence, Trajectory, beam_angles_rad, wrap_angle_rad
@@ -75,6 +79,15 @@ _ROBOTLASER_FIXED_FIELDS = 24  # name, 7 settings, n, m, 6 pose values, 5 motion
 _ODOM_FIELDS = 10
 _GZIP_MAGIC = b"\x1f\x8b"
 _BZIP2_MAGIC = b"BZh"
+__all__ = [
+    "LASER_RECORDS",
+    "CarmenError",
+    "ScanMatch",
+    "is_corrected_log",
+    "match_keyframe_scans",
+    "match_scans",
+    "read_carmen",
+]
 
 
 class CarmenError(DatasetError):
@@ -440,44 +453,3 @@ def _check_backsteps(
         f"is {back[j - 1] / NS_PER_S:.3f} s before line {line_numbers[k]} "
         f"(more than input.carmen_stamp_jitter_s = {cfg.carmen_stamp_jitter_s:g} s)"
     )
-
-
-def match_scans(
-    keyframes: Recording, full: Recording, window_s: float = 0.05, tolerance_m: float = 0.005
-) -> NDArray[np.int64]:
-    """(K,) index into ``full.scans`` of each scan of ``keyframes`` (e.g. intel.gfs.log into intel.clf).
-
-    Matching by logger timestamp alone is ambiguous: corrected logs round stamps to 6 significant digits
-    (10 ms at 2683.77 s) and intel.clf logs scans in bursts 1 ms apart, so the nearest stamp is the wrong
-    scan for 19% of intel.gfs.log. Among the scans whose logger stamp lies within ``window_s``, this takes
-    the one whose ranges agree (largest difference at most ``tolerance_m``); DatasetError if there is none.
-    """
-    if keyframes.scans is None or full.scans is None:
-        raise DatasetError("match_scans: both recordings need scans")
-    k_stamps = keyframes.meta.get("logger_stamps_ns")
-    f_stamps = full.meta.get("logger_stamps_ns")
-    if k_stamps is None or f_stamps is None:
-        raise DatasetError("match_scans: both recordings need meta['logger_stamps_ns'] (CARMEN logs)")
-    order = np.argsort(f_stamps, kind="stable")
-    ordered = f_stamps[order]
-    window_ns = round(window_s * NS_PER_S)
-    lo = np.searchsorted(ordered, k_stamps - window_ns, side="left")
-    hi = np.searchsorted(ordered, k_stamps + window_ns, side="right")
-    out = np.empty(len(k_stamps), dtype=np.int64)
-    for j in range(len(k_stamps)):
-        ranges = keyframes.scans.ranges_m[j]
-        best, best_err = -1, np.inf
-        for i in order[lo[j] : hi[j]]:
-            other = full.scans.ranges_m[i]
-            if other.shape != ranges.shape:
-                continue
-            err = float(np.max(np.abs(other - ranges)))
-            if err < best_err:
-                best, best_err = int(i), err
-        if best < 0 or best_err > tolerance_m:
-            raise DatasetError(
-                f"{keyframes.source}: scan {j} (logger stamp {ns_to_decimal(k_stamps[j])} s) has no scan "
-                f"with the same ranges within {window_s:g} s in {full.source}"
-            )
-        out[j] = best
-    return out

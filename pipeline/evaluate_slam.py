@@ -7,9 +7,11 @@ trajectories before and after loop closure:
   GMapping-corrected CARMEN log (``*.gfs.log``, ``*-corrected.log*``) or a simulated bag with ground truth
   (the input itself may be given), or a KITTI folder with its poses file (give the same folder: its own
   poses, moved to the Velodyne frame by the reader, are the reference; SLAM runs on its clouds). Scans are
-  matched by content and logger stamp for two CARMEN logs (:func:`datasets.carmen.match_scans`), else by
-  scan stamp. ATE RMSE (m) after SE(2) alignment, the
-  relations error between consecutive reference scans, and the NEES of the covariances.
+  matched by content within the logger-stamp window, else by content and line order, for two CARMEN logs
+  (:func:`datasets.keyframe_match.match_keyframe_scans`), else by scan stamp; reference scans matched
+  nowhere are left out, and ``reference["scan_matching"]`` counts the scans of each way. ATE RMSE (m)
+  after SE(2) alignment, the relations error between consecutive reference scans, and the NEES of the
+  covariances.
 - ``--relations FILE``: Kuemmerle et al. relations ``t1 t2 x y z roll pitch yaw``; the estimated poses at
   ``t1`` / ``t2`` are those of the scans with these stamps (the scan stamps, or the CARMEN logger stamps when
   they fit more relations), within ``STAMP_TOLERANCE_NS``.
@@ -61,7 +63,7 @@ def evaluate_slam(
     if reference_path is not None:
         same = Path(reference_path).resolve() == Path(rec.source).resolve()
         ref = rec if same else open_dataset(reference_path, config.input)
-        scans, rows = match_reference(rec, ref)
+        scans, rows, scan_matching = match_reference_counted(rec, ref)
     if relations is not None:
         rel_match = match_relations(rec, relations, relations_path)
     t0 = time.perf_counter()
@@ -70,6 +72,7 @@ def evaluate_slam(
     out: dict[str, Any] = {"relations": None, "ate_rmse_m": None}
     if ref is not None:
         out.update(score_reference(rec, ref, scans, rows, result, reference_path))
+        out["reference"]["scan_matching"] = scan_matching
     if relations is not None:
         out["relations"] = score_relations(rec, result, relations, rel_match)
     out["slam"] = result.summary()
@@ -89,7 +92,18 @@ def _laser_poses(base_xytheta: np.ndarray, mount: np.ndarray) -> np.ndarray:
 
 
 def match_reference(rec: Recording, ref: Recording) -> tuple[np.ndarray, np.ndarray]:
-    """``(scan indices in rec, row indices in ref.reference)`` of the scans both recordings share."""
+    """``(scan indices in rec, row indices in ref.reference)`` (M,) each, of the scans both recordings
+    share (:func:`match_reference_counted` without the counts)."""
+    scans, rows, _ = match_reference_counted(rec, ref)
+    return scans, rows
+
+
+def match_reference_counted(rec: Recording, ref: Recording) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """``(scan indices in rec, row indices in ref.reference, counts)``: the (M,) scans both recordings
+    share and how the reference's were matched: ``{"stamp": n, "content_order": m, "unmatched": u}`` for
+    two CARMEN logs (:func:`datasets.keyframe_match.match_keyframe_scans`), ``{"same_scans": n,
+    "unmatched": 0}`` when the reference is the input or has its scan stamps, else ``{"scan_stamp": n,
+    "unmatched": u}`` (a scan stamp within 50 ms). Unmatched reference scans are left out."""
     if ref.reference is None:
         raise PipelineError(
             f"{ref.source}: no reference poses (expected a corrected log such as *.gfs.log or "
@@ -98,17 +112,22 @@ def match_reference(rec: Recording, ref: Recording) -> tuple[np.ndarray, np.ndar
     same = Path(rec.source).resolve() == Path(ref.source).resolve()
     if same or (ref.scans is not None and np.array_equal(ref.reference.stamps_ns, rec.scans.stamps_ns)):
         n = len(rec.scans)
-        return np.arange(n), np.arange(n)
+        return np.arange(n), np.arange(n), {"same_scans": n, "unmatched": 0}
     if rec.format == "carmen" and ref.format == "carmen" and "logger_stamps_ns" in ref.meta:
-        from datasets.carmen import match_scans
+        from datasets.keyframe_match import match_keyframe_scans
 
-        idx = match_scans(ref, rec)
-        return idx, np.arange(len(idx))
+        found = match_keyframe_scans(ref, rec)
+        ok = found.matched
+        if not np.any(ok):
+            raise PipelineError(
+                f"{ref.source}: none of its {len(ok)} scans has the ranges of a scan of {rec.source}"
+            )
+        return found.indices[ok], np.flatnonzero(ok), found.counts
     rows = metrics.index_at_stamps(rec.scans.stamps_ns, ref.reference.stamps_ns, STAMP_TOLERANCE_NS)
     ok = rows >= 0
     if not np.any(ok):
         raise PipelineError(f"{ref.source}: no reference pose within 50 ms of a scan of {rec.source}")
-    return rows[ok], np.nonzero(ok)[0]
+    return rows[ok], np.nonzero(ok)[0], {"scan_stamp": int(ok.sum()), "unmatched": int(np.sum(~ok))}
 
 
 def score_reference(
@@ -196,6 +215,10 @@ def _table(out: dict[str, Any]) -> dict[str, Any]:
     ref = out.get("reference")
     if ref:
         rows["reference scans matched"] = ref["matched_scans"]
+        if "scan_matching" in ref:
+            rows["reference scans matched by"] = ", ".join(
+                f"{k} {v}" for k, v in ref["scan_matching"].items()
+            )
         rows["NEES mean after (3 if consistent)"] = ref["nees_mean"]["after"]
     rel = out.get("relations")
     if rel:
