@@ -20,6 +20,7 @@ FloatArray = NDArray[np.float64]
 
 HOLDOUT_FRACTION = 0.1
 HOLDOUT_BLOCK = 40
+HOLDOUT_SHORT_BLOCK = 10  # recordings under 400 scans, where no 40-scan block fits (SPEC section 6)
 HOLDOUT_MAX_RANGE_M = 40.0
 
 
@@ -42,6 +43,15 @@ def holdout_split(
         held.update(range(start, start + block))
         done += 1
     return sorted(held)
+
+
+def holdout_block_scans(n_scans: int, fraction: float = HOLDOUT_FRACTION) -> int | None:
+    """The block size of the hold-out protocol for ``n_scans`` scans (SPEC section 6): 40, or 10 when no
+    40-scan block fits (under 400 scans); None when not even a 10-scan block fits (under 100)."""
+    for block in (HOLDOUT_BLOCK, HOLDOUT_SHORT_BLOCK):
+        if int(n_scans * fraction / block) >= 1:
+            return block
+    return None
 
 
 def holdout_test_points(

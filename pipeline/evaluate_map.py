@@ -2,7 +2,8 @@
 
 Ground-truth protocol when ``INPUT.gt.npz`` lies beside the input (simulated worlds: every cell of the
 raster scored; a world of several platforms is mapped from all their scan topics unless ``--scan-topic``
-says otherwise), the hold-out protocol otherwise (blocks of scans held out, test points along their beams).
+says otherwise), the hold-out protocol otherwise (blocks of 40 scans held out, of 10 in recordings under
+400 scans, ``block_scans`` in the output; test points along their beams).
 Maps are built from the input's reference poses; a recording without them is mapped on the optimised
 trajectory of the SLAM stage, whose marginal covariances GPPOL then uses, and the output says so (``poses``).
 
@@ -31,7 +32,7 @@ from datasets.errors import DatasetError
 from datasets.types import Recording
 from mapping.beams import Beams, compose_laser_poses
 from mapping.config import MappingConfig, SourceNoiseConfig
-from mapping.evaluation import holdout_split, holdout_test_points, is_carmen_180
+from mapping.evaluation import holdout_block_scans, holdout_split, holdout_test_points, is_carmen_180
 from mapping.metrics import roc_auc
 from pipeline import mapping_stage as ms
 from pipeline.config import load_config
@@ -149,22 +150,40 @@ def evaluate_holdout(
     progress: Progress,
     cov: np.ndarray | None = None,
     perturb_poses: tuple[float, float] | None = None,
+    test_base_poses: np.ndarray | None = None,
+    block_scans: int | None = None,
+    mappable: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The hold-out protocol of SPEC section 6 for GPPOL, GPFOL and the grid, one entry per seed.
 
-    ``cov`` (N, 3, 3): base-pose covariances for GPPOL (None: exact poses); ``perturb_poses``: see the
-    module docstring (then the covariance is the perturbation's)."""
+    ``base_poses`` (N, 3): the base poses the training scans are mapped at; ``test_base_poses`` (N, 3): the
+    base poses the test points are computed from (default ``base_poses``; the reference poses when the map
+    is built from our own SLAM's poses). ``cov`` (N, 3, 3): base-pose covariances for GPPOL (None: exact
+    poses); ``perturb_poses``: see the module docstring (then the covariance is the perturbation's).
+    ``block_scans``: scans per held-out block (default :func:`holdout_block_scans`: 40, 10 under 400
+    scans). ``mappable`` (N,) bool: the scans that may be mapped (default all; e.g. those with a SLAM pose),
+    the held-out ones never are. Returns ``per_seed`` and ``block_scans``."""
     scans = rec.scans
     n = len(scans)
+    block = block_scans if block_scans is not None else holdout_block_scans(n)
+    if block is None:
+        raise PipelineError(
+            f"{rec.source}: {n} scans are too few for the hold-out protocol (under 100: no block fits)"
+        )
     carmen = rec.format == "carmen" and all(is_carmen_180(a) for a in scans.angles_rad[: min(n, 10)])
-    truth_laser = compose_laser_poses(base_poses, rec.laser_in_base_xytheta)
+    test_poses = base_poses if test_base_poses is None else test_base_poses
+    truth_laser = compose_laser_poses(test_poses, rec.laser_in_base_xytheta)
     per_seed = []
     with progress.stage("evaluate map", total=len(seeds)) as bar:
         for seed in seeds:
-            held = np.asarray(holdout_split(n, seed), dtype=np.int64)
+            held = np.asarray(holdout_split(n, seed, block=block), dtype=np.int64)
             if held.size == 0:
-                raise PipelineError(f"{rec.source}: {n} scans are too few for the hold-out protocol (< 400)")
+                raise PipelineError(
+                    f"{rec.source}: {n} scans are too few for the hold-out protocol with {block}-scan blocks"
+                )
             train = np.setdiff1d(np.arange(n), held)
+            if mappable is not None:
+                train = train[np.asarray(mappable, dtype=bool)[train]]
             pts, labels = holdout_test_points(
                 scans.ranges_m, scans.angles_rad, truth_laser, held.tolist(), seed, carmen_180=carmen
             )
@@ -175,13 +194,14 @@ def evaluate_holdout(
             row = {
                 "seed": seed,
                 "held_out_scans": int(held.size),
+                "training_scans": int(train.size),
                 "test_points": int(labels.size),
                 "occupied_test_points": int(labels.sum()),
             }
             row.update(_map_and_score(beams, seed_cov, cfg, pts, labels, seed, None, sort=True))
             per_seed.append(row)
             bar.advance()
-    return {"per_seed": per_seed}
+    return {"per_seed": per_seed, "block_scans": block}
 
 
 def ground_truth_noise(cfg: MappingConfig, gt: Any) -> MappingConfig:
@@ -278,6 +298,8 @@ def evaluate_map(
         "GPPOL pose covariance": pose_cov,
         "GPPOL laser noise": "simulator's (ground truth)" if "sensor_noise_from" in out else "configuration",
     }
+    if "block_scans" in out:
+        table["held-out block (scans)"] = out["block_scans"]
     table.update({f"AUC {k}": v for k, v in auc.items()})
     for r in rows:
         tag = "" if r["seed"] is None else f" seed {r['seed']}"
@@ -295,6 +317,8 @@ def evaluate_map(
         "per_seed": rows,
         "table": table,
     }
+    if "block_scans" in out:
+        result["block_scans"] = out["block_scans"]
     if "sensor_noise" in out:
         result["sensor_noise"] = out["sensor_noise"]
         result["sensor_noise_from"] = out["sensor_noise_from"]
