@@ -64,22 +64,43 @@ def evaluate_slam(
         same = Path(reference_path).resolve() == Path(rec.source).resolve()
         ref = rec if same else open_dataset(reference_path, config.input)
         scans, rows, scan_matching = match_reference_counted(rec, ref)
+    else:
+        scans = rows = None
     if relations is not None:
         rel_match = match_relations(rec, relations, relations_path)
+    out, result = slam_and_score(rec, ref, scans, rows, reference_path, config.slam, progress)
+    if ref is not None:
+        out["reference"]["scan_matching"] = scan_matching
+    if relations is not None:
+        out["relations"] = score_relations(rec, result, relations, rel_match)
+    out["table"] = _table(out)
+    return out
+
+
+def slam_and_score(
+    rec: Recording,
+    ref: Recording | None,
+    scans: np.ndarray | None,
+    rows: np.ndarray | None,
+    reference_path: str | Path | None,
+    slam_config: Any = None,
+    progress: Progress | None = None,
+) -> tuple[dict[str, Any], SlamResult]:
+    """Run the SLAM stage on ``rec`` and score it against ``ref`` (None: no reference) on the ``scans`` of
+    ``rec`` matched to the ``rows`` of ``ref.reference`` (:func:`match_reference`).
+
+    Returns the dict of :func:`evaluate_slam` without ``table`` (``relations`` null, ``ate_rmse_m`` null
+    without a reference; ``slam``: counts, timings, ``wall_s`` and ``realtime_factor``) and the result."""
     t0 = time.perf_counter()
-    result = run_slam_recording(rec, config.slam, progress)
+    result = run_slam_recording(rec, slam_config, progress)
     wall_s = time.perf_counter() - t0
     out: dict[str, Any] = {"relations": None, "ate_rmse_m": None}
     if ref is not None:
         out.update(score_reference(rec, ref, scans, rows, result, reference_path))
-        out["reference"]["scan_matching"] = scan_matching
-    if relations is not None:
-        out["relations"] = score_relations(rec, result, relations, rel_match)
     out["slam"] = result.summary()
     out["slam"]["wall_s"] = wall_s
     out["slam"]["realtime_factor"] = _duration_s(rec) / wall_s if wall_s > 0 else None
-    out["table"] = _table(out)
-    return out
+    return out, result
 
 
 def _duration_s(rec: Recording) -> float:
