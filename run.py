@@ -111,6 +111,26 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--reference", type=Path, help="reference log (e.g. a GMapping-corrected CARMEN log)")
     q.add_argument("--config", type=Path, help="YAML configuration")
     _add_json(q)
+    q = ev.add_parser(
+        "suite", help="every recording of a data folder: SLAM metrics and map AUCs, one table (a row each)"
+    )
+    q.add_argument(
+        "--data", type=Path, metavar="DIR", help="data folder (default: ../shared/data beside the checkout)"
+    )
+    q.add_argument(
+        "--only",
+        nargs="+",
+        action="extend",
+        metavar="NAME",
+        help="only these datasets, named as in the table (intel, fr079, seattle, fr-clinic, loop-0, ...)",
+    )
+    q.add_argument("--seed", type=int, action="append", help="seed(s) of the hold-out split (default: 0-4)")
+    q.add_argument("--config", type=Path, help="YAML configuration")
+    q.add_argument("--slam-only", action="store_true", help="SLAM metrics only, no maps")
+    q.add_argument(
+        "--no-simulated", action="store_true", help="leave out the simulated loop world (loop-0 to loop-2)"
+    )
+    _add_json(q)
 
     p = sub.add_parser("bench", help="performance figures (SPEC section 7)")
     _add_json(p)

@@ -12,6 +12,7 @@ simulate           ``datasets.simulation.simulate``
 convert            ``pipeline.convert.convert_recording``
 evaluate map       ``pipeline.evaluate_map.evaluate_map``
 evaluate slam      ``pipeline.evaluate_slam.evaluate_slam``
+evaluate suite     ``pipeline.evaluate_suite.evaluate_suite``
 bench              ``pipeline.bench.run_bench``
 run / demo         ``pipeline.run.run_pipeline`` / ``pipeline.run.run_demo``
 remap              ``pipeline.remap.remap_run``
@@ -62,6 +63,22 @@ def print_summary(title: str, rows: dict[str, Any]) -> None:
             value = f"{value:.4g}"
         table.add_row(str(key), "-" if value is None else str(value))
     Console(file=sys.stdout, width=120).print(table)
+
+
+def print_columns(title: str, rows: list[dict[str, str]], caption: str | None = None) -> None:
+    """A table of ``rows`` (one dict of column -> text each, the columns of the first) on stdout; cells wrap
+    to the terminal's width, or to 200 characters in a pipe."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=title, caption=caption, caption_justify="left", show_lines=True)
+    columns = list(rows[0]) if rows else []
+    for i, column in enumerate(columns):
+        last = i == len(columns) - 1
+        table.add_column(column, justify="left" if i == 0 or last else "right", no_wrap=i == 0)
+    for row in rows:
+        table.add_row(*(str(row.get(c, "-")) for c in columns))
+    Console(file=sys.stdout, width=None if sys.stdout.isatty() else 200).print(table)
 
 
 def _report(result: dict[str, Any], args: argparse.Namespace, emit_json: EmitJson, title: str) -> int:
@@ -157,6 +174,8 @@ def cmd_evaluate(args: argparse.Namespace, emit_json: EmitJson) -> int:
             scan_topic=args.scan_topic,
         )
         return _report(result, args, emit_json, f"map evaluation of {args.input}")
+    if args.target == "suite":
+        return _evaluate_suite(args, emit_json, progress)
     from pipeline.evaluate_slam import evaluate_slam
 
     result = evaluate_slam(
@@ -167,6 +186,29 @@ def cmd_evaluate(args: argparse.Namespace, emit_json: EmitJson) -> int:
         progress=progress,
     )
     return _report(result, args, emit_json, f"SLAM evaluation of {args.input}")
+
+
+def _evaluate_suite(args: argparse.Namespace, emit_json: EmitJson, progress: Any) -> int:
+    """``evaluate suite``: exit status 0 when every recording ran, failed or not (failures are rows)."""
+    from pipeline.evaluate_suite import TABLE_LEGEND, evaluate_suite
+
+    result = evaluate_suite(
+        data_dir=args.data,
+        only=args.only,
+        seeds=args.seed,
+        config_path=args.config,
+        slam_only=args.slam_only,
+        simulated=not args.no_simulated,
+        progress=progress,
+    )
+    if args.json:
+        emit_json({k: v for k, v in result.items() if k != "table"})
+        return 0
+    seeds = ",".join(map(str, result["seeds"]))
+    maps = "SLAM only" if result["slam_only"] else f"maps: hold-out seeds {seeds}"
+    title = f"evaluation suite of {result['data']} ({maps}; {result['wall_s']:.0f} s)"
+    print_columns(title, result["table"], TABLE_LEGEND)
+    return 0
 
 
 def cmd_bench(args: argparse.Namespace, emit_json: EmitJson) -> int:
