@@ -39,11 +39,14 @@ def _scan_normals(
     max_flatness: float,
     min_points: int,
     viewpoint: FloatArray,
+    radius_per_m: float,
 ) -> FloatArray:
     p = points.shape[0]
     normals = np.full((p, 2), np.nan)
-    r2 = radius_m * radius_m
     for i in range(p):
+        rng = math.hypot(points[i, 0] - viewpoint[0], points[i, 1] - viewpoint[1])
+        rad = max(radius_m, radius_per_m * rng)
+        r2 = rad * rad
         # neighbours within the radius, walking the scan order both ways from i; a walk stops after 3
         # consecutive points beyond the radius (a depth edge) or max_half_window steps
         sx = 0.0
@@ -113,6 +116,7 @@ def scan_normals(
     max_flatness: float = 0.2,
     min_points: int = 3,
     viewpoint_xy: FloatArray | None = None,
+    radius_per_m: float = 0.0,
 ) -> FloatArray:
     """(P, 2) unit normals of ordered scan points (NaN where the neighbourhood is not line-like).
 
@@ -121,7 +125,9 @@ def scan_normals(
     beyond the radius). The normal is its direction of least spread; at least ``min_points`` points
     (``i`` included) and ``lambda_min <= max_flatness * lambda_max`` are required. A metric radius
     averages the range noise over many beams of a dense scanner (0.25 deg beams at 1 m are 4 mm apart)
-    and stays local on a sparse one. Normals face ``viewpoint_xy`` (default: the origin of the points' frame;
+    and stays local on a sparse one; ``radius_per_m`` widens it in proportion to the point's distance from
+    the viewpoint, so that far points of a sparse scanner (1 deg beams are 35 cm apart at 20 m) still find
+    their neighbours. Normals face ``viewpoint_xy`` (default: the origin of the points' frame;
     odometry and loop closure pass base-frame points, so they face the base, which sees the same side of a
     surface as the laser mounted on it), so that the normals of one surface seen in several scans agree in
     sign. The
@@ -130,7 +136,15 @@ def scan_normals(
     """
     pts = np.ascontiguousarray(points_xy, dtype=np.float64)
     vp = np.zeros(2) if viewpoint_xy is None else np.asarray(viewpoint_xy, dtype=np.float64)
-    return _scan_normals(pts, float(radius_m), int(max_half_window), float(max_flatness), int(min_points), vp)
+    return _scan_normals(
+        pts,
+        float(radius_m),
+        int(max_half_window),
+        float(max_flatness),
+        int(min_points),
+        vp,
+        float(radius_per_m),
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -431,6 +445,313 @@ def correlative_search(
             best_score = float(fine[0, 0])
             best_pose = fine[0, 1:].copy()
     return SearchResult(best_pose, best_score / n)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Branch-and-bound correlative search
+
+
+@nb.njit(cache=True)
+def _score_pyramid(score: NDArray[np.float32], r0: int, c0: int, h: int, w: int, depth: int):
+    """(depth + 1, h, w) max-pooled scores of the window ``score[r0:r0+h, c0:c0+w]`` (zero outside the grid):
+    level ``d`` holds at ``(y, x)`` the largest score of the cells ``[y, y + 2^d) x [x, x + 2^d)``."""
+    gh, gw = score.shape
+    out = np.zeros((depth + 1, h, w), dtype=np.float32)
+    for y in range(h):
+        gy = r0 + y
+        if gy < 0 or gy >= gh:
+            continue
+        for x in range(w):
+            gx = c0 + x
+            if 0 <= gx < gw:
+                out[0, y, x] = score[gy, gx]
+    for d in range(1, depth + 1):
+        half = 1 << (d - 1)
+        for y in range(h):
+            y2 = y + half
+            for x in range(w):
+                x2 = x + half
+                m = out[d - 1, y, x]
+                if x2 < w and out[d - 1, y, x2] > m:
+                    m = out[d - 1, y, x2]
+                if y2 < h:
+                    if out[d - 1, y2, x] > m:
+                        m = out[d - 1, y2, x]
+                    if x2 < w and out[d - 1, y2, x2] > m:
+                        m = out[d - 1, y2, x2]
+                out[d, y, x] = m
+    return out
+
+
+@nb.njit(cache=True)
+def _bnb(
+    pyramid: NDArray[np.float32],
+    x0: float,
+    y0: float,
+    res: float,
+    points: FloatArray,
+    cx: float,
+    cy: float,
+    ctheta: float,
+    n_lin: int,
+    n_ang: int,
+    ang_step: float,
+    min_total: float,
+    cost_lin: float,
+    cost_ang: float,
+):
+    """Exact maximum of the summed score minus the motion cost ``cost_lin * (dx^2 + dy^2) + cost_ang *
+    dtheta^2`` (offsets in cells and rad) over the translations ``+-n_lin`` cells and rotations
+    ``ctheta + a * ang_step``, ``|a| <= n_ang``, by branch and bound (Hess et al., ICRA 2016, section V.C; a
+    node's bound subtracts the least cost over its offsets). ``pyramid`` is :func:`_score_pyramid` of the
+    window whose lower-left cell is at ``(x0, y0)``. Returns ``(found, objective, x, y, theta, nodes,
+    score)``; ``found`` is False when no objective exceeds ``min_total``."""
+    depth = pyramid.shape[0] - 1
+    h = pyramid.shape[1]
+    w = pyramid.shape[2]
+    p = points.shape[0]
+    n_rot = 2 * n_ang + 1
+    # discretised rotated points (cell of the point at zero translation offset)
+    ixs = np.empty((n_rot, p), dtype=np.int64)
+    iys = np.empty((n_rot, p), dtype=np.int64)
+    for a in range(n_rot):
+        th = ctheta + (a - n_ang) * ang_step
+        c = math.cos(th)
+        s = math.sin(th)
+        for k in range(p):
+            qx = c * points[k, 0] - s * points[k, 1] + cx
+            qy = s * points[k, 0] + c * points[k, 1] + cy
+            ixs[a, k] = math.floor((qx - x0) / res)
+            iys[a, k] = math.floor((qy - y0) / res)
+    # roots: every rotation x the top-level translation cells covering the window
+    step = 1 << depth
+    n_top = (2 * n_lin + 1 + step - 1) // step
+    roots = n_rot * n_top * n_top
+    r_a = np.empty(roots, dtype=np.int64)
+    r_x = np.empty(roots, dtype=np.int64)
+    r_y = np.empty(roots, dtype=np.int64)
+    r_s = np.empty(roots, dtype=np.float64)
+    i = 0
+    for a in range(n_rot):
+        for ty in range(n_top):
+            for tx in range(n_top):
+                dx = -n_lin + tx * step
+                dy = -n_lin + ty * step
+                # the least motion cost over the node's offsets (0 where its box holds the centre)
+                mx = 0 if dx <= 0 < dx + step else min(abs(dx), abs(dx + step - 1))
+                my = 0 if dy <= 0 < dy + step else min(abs(dy), abs(dy + step - 1))
+                tot = -cost_lin * (mx * mx + my * my) - cost_ang * ((a - n_ang) * ang_step) ** 2
+                for k in range(p):
+                    jx = ixs[a, k] + dx
+                    jy = iys[a, k] + dy
+                    if 0 <= jx < w and 0 <= jy < h:
+                        tot += pyramid[depth, jy, jx]
+                r_a[i] = a
+                r_x[i] = dx
+                r_y[i] = dy
+                r_s[i] = tot
+                i += 1
+    # depth-first stack of nodes (rotation, dx, dy, level) covering the offsets [dx, dx + 2^level) x
+    # [dy, dy + 2^level); each expansion adds at most 3 entries, so roots + 3 * depth + 1 suffice
+    cap = roots + 4 * (depth + 1)
+    stack_a = np.empty(cap, dtype=np.int64)
+    stack_x = np.empty(cap, dtype=np.int64)
+    stack_y = np.empty(cap, dtype=np.int64)
+    stack_l = np.empty(cap, dtype=np.int64)
+    stack_s = np.empty(cap, dtype=np.float64)
+    top = 0
+    order = np.argsort(r_s)
+    for j in range(roots):  # ascending, so that the best root is popped first
+        o = order[j]
+        stack_a[top] = r_a[o]
+        stack_x[top] = r_x[o]
+        stack_y[top] = r_y[o]
+        stack_l[top] = depth
+        stack_s[top] = r_s[o]
+        top += 1
+    best = min_total
+    best_a = -1
+    best_x = 0
+    best_y = 0
+    nodes = roots
+    cs = np.empty(4)
+    cx_ = np.empty(4, dtype=np.int64)
+    cy_ = np.empty(4, dtype=np.int64)
+    while top > 0:
+        top -= 1
+        s = stack_s[top]
+        if s <= best:
+            continue
+        a = stack_a[top]
+        lvl = stack_l[top]
+        dx = stack_x[top]
+        dy = stack_y[top]
+        if lvl == 0:
+            best = s
+            best_a = a
+            best_x = dx
+            best_y = dy
+            continue
+        half = 1 << (lvl - 1)
+        nc = 0
+        for q in range(4):
+            ndx = dx + (q % 2) * half
+            ndy = dy + (q // 2) * half
+            if ndx > n_lin or ndy > n_lin:
+                continue
+            mx = 0 if ndx <= 0 < ndx + half else min(abs(ndx), abs(ndx + half - 1))
+            my = 0 if ndy <= 0 < ndy + half else min(abs(ndy), abs(ndy + half - 1))
+            tot = -cost_lin * (mx * mx + my * my) - cost_ang * ((a - n_ang) * ang_step) ** 2
+            for k in range(p):
+                jx = ixs[a, k] + ndx
+                jy = iys[a, k] + ndy
+                if 0 <= jx < w and 0 <= jy < h:
+                    tot += pyramid[lvl - 1, jy, jx]
+            nodes += 1
+            if tot <= best:
+                continue
+            cs[nc] = tot
+            cx_[nc] = ndx
+            cy_[nc] = ndy
+            nc += 1
+        # push the children worst first, so that the best is explored next
+        for _ in range(nc):
+            m = 0
+            for q in range(1, nc):
+                if cs[q] < cs[m]:
+                    m = q
+            stack_a[top] = a
+            stack_x[top] = cx_[m]
+            stack_y[top] = cy_[m]
+            stack_l[top] = lvl - 1
+            stack_s[top] = cs[m]
+            top += 1
+            cs[m] = np.inf
+    if best_a < 0:
+        return False, 0.0, cx, cy, ctheta, nodes, 0.0
+    dth = (best_a - n_ang) * ang_step
+    score = best + cost_lin * (best_x * best_x + best_y * best_y) + cost_ang * dth * dth
+    return True, best, cx + best_x * res, cy + best_y * res, ctheta + dth, nodes, score
+
+
+@dataclass(frozen=True)
+class ScorePyramid:
+    """Max-pooled copies of a score grid for :func:`branch_and_bound_search`: ``levels[d]`` holds at cell
+    ``(y, x)`` the largest score of the cells ``[y, y + 2^d) x [x, x + 2^d)`` (``levels`` (D + 1, H, W)
+    float32). ``origin_xy_m`` is the lower-left corner of cell (0, 0); the window starts ``2^D`` cells before
+    the part it was built for, since a node's pool reaches that far below the cells its leaves use."""
+
+    levels: NDArray[np.float32]
+    origin_xy_m: FloatArray
+    resolution_m: float
+
+    @property
+    def depth(self) -> int:
+        return self.levels.shape[0] - 1
+
+    @classmethod
+    def of_grid(
+        cls, grid: PointGrid, depth: int, pool: int = 1, bounds_xy_m: FloatArray | None = None
+    ) -> ScorePyramid:
+        """The pyramid of ``grid.score`` (max-pooled by ``pool`` cells first: a coarser, cheaper search
+        whose optimum the refinement then sharpens), over the grid or the box ``bounds_xy_m``
+        ``(xmin, ymin, xmax, ymax)``; cells outside the grid score 0."""
+        score = grid.score
+        res = grid.resolution_m
+        if pool > 1:
+            h, w = score.shape
+            hp, wp = -(-h // pool), -(-w // pool)
+            padded = np.zeros((hp * pool, wp * pool), dtype=np.float32)
+            padded[:h, :w] = score
+            score = padded.reshape(hp, pool, wp, pool).max(axis=(1, 3))
+            res = res * pool
+        ox, oy = float(grid.origin_xy_m[0]), float(grid.origin_xy_m[1])
+        pad = 1 << depth
+        if bounds_xy_m is None:
+            c0, r0 = -pad, -pad
+            h, w = score.shape[0] + pad, score.shape[1] + pad
+        else:
+            c0 = math.floor((bounds_xy_m[0] - ox) / res) - pad
+            r0 = math.floor((bounds_xy_m[1] - oy) / res) - pad
+            w = math.ceil((bounds_xy_m[2] - ox) / res) + 1 - c0
+            h = math.ceil((bounds_xy_m[3] - oy) / res) + 1 - r0
+        levels = _score_pyramid(score, r0, c0, h, w, depth)
+        return cls(levels, np.array([ox + c0 * res, oy + r0 * res]), res)
+
+
+def bnb_depth(window_xy_m: float, resolution_m: float) -> int:
+    """Levels of a pyramid whose top cell covers the translational window (at most 7)."""
+    n_lin = max(math.ceil(window_xy_m / resolution_m), 0)
+    return max(0, min(7, math.ceil(math.log2(2 * n_lin + 1)) - 1))
+
+
+def branch_and_bound_search(
+    grid: PointGrid | ScorePyramid,
+    points_xy: FloatArray,
+    center_xytheta: FloatArray,
+    window_xy_m: float,
+    window_theta_rad: float,
+    theta_step_rad: float | None = None,
+    min_score: float = 0.0,
+    prior_sigma_xy_m: float | None = None,
+    prior_sigma_theta_rad: float | None = None,
+    prior_weight: float = 0.0,
+) -> SearchResult:
+    """The pose within ``center +- window`` maximising the mean score of the transformed points, found
+    exactly by branch and bound over max-pooled score grids (Hess et al., "Real-time loop closure in 2D
+    LIDAR SLAM", ICRA 2016): the same optimum as :func:`correlative_search` without coarse-to-fine
+    shortcuts, at a cost that grows little with the window. ``grid``: a :class:`PointGrid` (its pyramid is
+    built for the part the search can reach) or a prebuilt :class:`ScorePyramid` covering that part (a map
+    searched many times); translations are searched on its cells. ``min_score`` (mean per point) prunes:
+    below it the result's score is 0 and its pose the centre. ``theta_step_rad`` as in
+    :func:`correlative_search`.
+
+    With ``prior_weight > 0`` the objective is the mean score minus ``prior_weight / 2`` times the squared
+    Mahalanobis distance of the pose from the centre (sigmas ``prior_sigma_xy_m``,
+    ``prior_sigma_theta_rad``): a motion prior, as in Olson's correlative matcher, so that in a wide window
+    a far pose wins only when it matches clearly better. The returned score is the mean score alone.
+    """
+    pts = np.ascontiguousarray(points_xy, dtype=np.float64)
+    c = np.asarray(center_xytheta, dtype=np.float64)
+    n = pts.shape[0]
+    if n == 0:
+        return SearchResult(c.copy(), 0.0)
+    res = grid.resolution_m
+    r_max = float(np.max(np.hypot(pts[:, 0], pts[:, 1])))
+    if theta_step_rad is None:
+        theta_step_rad = float(np.clip(res / max(r_max, 1e-3), math.radians(0.05), math.radians(1.0)))
+    n_lin = max(math.ceil(window_xy_m / res), 0)
+    n_ang = max(math.ceil(window_theta_rad / theta_step_rad), 0)
+    if isinstance(grid, ScorePyramid):
+        pyramid = grid
+    else:
+        # the part of the grid any transformed point can reach
+        reach = r_max + window_xy_m + 2 * res
+        box = np.array([c[0] - reach, c[1] - reach, c[0] + reach, c[1] + reach])
+        pyramid = ScorePyramid.of_grid(grid, bnb_depth(window_xy_m, res), bounds_xy_m=box)
+    cost_lin = cost_ang = 0.0
+    if prior_weight > 0 and prior_sigma_xy_m and prior_sigma_theta_rad:
+        cost_lin = 0.5 * prior_weight * n * (res / prior_sigma_xy_m) ** 2
+        cost_ang = 0.5 * prior_weight * n / prior_sigma_theta_rad**2
+    found, _, x, y, th, _, score = _bnb(
+        pyramid.levels,
+        float(pyramid.origin_xy_m[0]),
+        float(pyramid.origin_xy_m[1]),
+        res,
+        pts,
+        c[0],
+        c[1],
+        c[2],
+        n_lin,
+        n_ang,
+        theta_step_rad,
+        min_score * n - 1e-9 if min_score > 0 else -np.inf,
+        cost_lin,
+        cost_ang,
+    )
+    if not found:
+        return SearchResult(c.copy(), 0.0)
+    return SearchResult(np.array([x, y, th]), float(score) / n)
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -9,6 +9,9 @@ import pytest
 from slam import geometry as se2
 from slam.scan_matching import (
     PointGrid,
+    ScorePyramid,
+    _csm,
+    branch_and_bound_search,
     correlative_search,
     fitness,
     mark_free_space,
@@ -92,7 +95,10 @@ def test_search_and_refinement_recover_a_known_pose(offset: tuple) -> None:
 
 def test_a_corridor_constrains_one_direction_and_the_prior_holds_the_other() -> None:
     pose = np.array([0.0, 1.0, 0.0])
-    grid, _ = _map(pose, CORRIDOR)
+    # a map seen from elsewhere (the scan itself would match exactly at its own pose), beyond its reach
+    others = ([-10.0, 1.0, 0.0], [-3.3, 1.0, 0.0], [3.7, 1.0, 0.0], [10.0, 1.0, 0.0])
+    world = np.concatenate([se2.transform_points(np.array(p), cast(np.array(p), CORRIDOR)) for p in others])
+    grid = PointGrid.from_points(world, np.tile([0.0, 1.0], (len(world), 1)))
     scan = cast(pose, CORRIDOR)
     al = refine_point_to_line(grid, scan, pose)
     eig = np.linalg.eigvalsh(al.hessian[:2, :2])
@@ -170,3 +176,54 @@ def test_the_far_face_of_a_thin_wall_does_not_attract_a_scan() -> None:
     assert plain.pose_xytheta[0] < 2.0 - 0.15  # dragged onto the wrong face
     assert abs(checked.pose_xytheta[0] - 2.0) < 0.01
     assert checked.hessian[0, 0] < 1e-6 * checked.hessian[1, 1]  # the wall's points matched nothing
+
+
+@pytest.mark.parametrize("trial", range(4))
+def test_branch_and_bound_finds_the_exhaustive_optimum(trial: int) -> None:
+    """Branch and bound is exact: the same best pose and score as scoring every pose of the window, from
+    a grid's own pyramid and from a prebuilt one, at any pyramid depth."""
+    rng = np.random.default_rng(trial)
+    map_pose = np.array([3.0, 1.5, 0.2])
+    grid, _ = _map(map_pose, ROOM)
+    true_pose = se2.compose(map_pose, rng.uniform([-0.8, -0.8, -0.5], [0.8, 0.8, 0.5]))
+    scan = cast(true_pose, ROOM, n=180)
+    step = np.radians(0.5)
+    n_lin, n_ang = 20, int(np.ceil(0.6 / step))
+    best = _csm(grid.score, *grid.origin_xy_m, grid.resolution_m, scan, *map_pose, n_lin, 1, n_ang, step, 1)[
+        0
+    ]
+    found = branch_and_bound_search(grid, scan, map_pose, 1.0, 0.6, step)
+    np.testing.assert_allclose(found.pose_xytheta, best[1:], atol=1e-9)
+    assert found.score == pytest.approx(best[0] / len(scan))
+    for depth in (0, 3, 7):
+        pyr = ScorePyramid.of_grid(grid, depth)
+        again = branch_and_bound_search(pyr, scan, map_pose, 1.0, 0.6, step)
+        np.testing.assert_allclose(again.pose_xytheta, best[1:], atol=1e-9)
+    assert np.hypot(*se2.between(true_pose, found.pose_xytheta)[:2]) < 0.1
+    # a score the window cannot reach prunes everything: no pose
+    none = branch_and_bound_search(grid, scan, map_pose, 1.0, 0.6, step, min_score=0.99)
+    assert none.score == 0.0 and np.array_equal(none.pose_xytheta, map_pose)
+
+
+def test_the_motion_prior_picks_the_pose_near_the_prediction_among_equal_matches() -> None:
+    """In a featureless corridor every shift along it scores the same; the exhaustive search takes any of
+    them, the prior-weighted search the one nearest the prediction."""
+    pose = np.array([0.0, 1.0, 0.0])
+    # a map seen from elsewhere (the scan itself would match exactly at its own pose), beyond its reach
+    others = ([-10.0, 1.0, 0.0], [-3.3, 1.0, 0.0], [3.7, 1.0, 0.0], [10.0, 1.0, 0.0])
+    world = np.concatenate([se2.transform_points(np.array(p), cast(np.array(p), CORRIDOR)) for p in others])
+    grid = PointGrid.from_points(world, np.tile([0.0, 1.0], (len(world), 1)))
+    scan = cast(pose, CORRIDOR)
+    pred = np.array([0.4, 1.0, 0.0])  # 0.4 m along the axis from where the scan was taken
+    found = branch_and_bound_search(
+        grid,
+        scan,
+        pred,
+        1.5,
+        0.2,
+        np.radians(0.5),
+        prior_sigma_xy_m=0.5,
+        prior_sigma_theta_rad=0.5,
+        prior_weight=0.1,
+    )
+    assert abs(found.pose_xytheta[0] - 0.4) < 0.051 and abs(found.pose_xytheta[1] - 1.0) < 0.051
