@@ -15,6 +15,7 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets.errors import GpomError
 from slam import geometry as se2
 
 FloatArray = NDArray[np.float64]
@@ -67,14 +68,32 @@ def _pose(p: FloatArray) -> gtsam.Pose2:
     return gtsam.Pose2(float(p[0]), float(p[1]), float(p[2]))
 
 
+class PoseGraphError(GpomError):
+    """The pose graph cannot be solved even with the QR factorisation (a variable no factor constrains)."""
+
+
+def _isam2(factorization: str) -> gtsam.ISAM2:
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(0.01)
+    params.relinearizeSkip = 1
+    params.setFactorization(factorization)
+    return gtsam.ISAM2(params)
+
+
 class PoseGraph:
-    """A growing ``Pose2`` graph optimised incrementally with iSAM2."""
+    """A growing ``Pose2`` graph optimised incrementally with iSAM2.
+
+    iSAM2 factorises with Cholesky, which GTSAM refuses (``IndeterminateSystemException``) when the
+    information of the factors spans more than about seven orders of magnitude along a chain (a keyframe
+    joined only by a wheel fallback's loose factor between millimetre-tight registrations); the graph then
+    switches to the QR factorisation for good (slower, and exact on such systems). Batch solving and
+    marginals fall back the same way. Only a graph that QR cannot solve either raises
+    :class:`PoseGraphError`.
+    """
 
     def __init__(self) -> None:
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(0.01)
-        params.relinearizeSkip = 1
-        self._isam = gtsam.ISAM2(params)
+        self.factorization = "CHOLESKY"
+        self._isam = _isam2(self.factorization)
         self.graph = gtsam.NonlinearFactorGraph()
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
@@ -139,12 +158,33 @@ class PoseGraph:
 
     def update(self, extra_iterations: int = 0) -> None:
         """Hand new factors and variables to iSAM2 (plus ``extra_iterations`` relinearisation passes)."""
-        self._isam.update(self._new_factors, self._new_values)
-        for _ in range(extra_iterations):
-            self._isam.update()
+        try:
+            self._isam.update(self._new_factors, self._new_values)
+            for _ in range(extra_iterations):
+                self._isam.update()
+        except RuntimeError as exc:
+            if self.factorization == "QR":
+                raise PoseGraphError(f"pose graph: {_first_line(exc)} (keyframes 0-{self._n - 1})") from None
+            self._restart_with_qr()
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._estimate = self._isam.calculateEstimate()
+
+    def _restart_with_qr(self) -> None:
+        """A new iSAM2 on the QR factorisation holding every factor, from the last estimate."""
+        values = gtsam.Values()
+        known = self._estimate
+        for key in range(self._n):
+            if known is not None and known.exists(key):
+                values.insert(key, known.atPose2(key))
+            else:
+                values.insert(key, self._new_values.atPose2(key))
+        self.factorization = "QR"
+        self._isam = _isam2("QR")
+        try:
+            self._isam.update(self.graph, values)
+        except RuntimeError as exc:
+            raise PoseGraphError(f"pose graph: {_first_line(exc)} (keyframes 0-{self._n - 1})") from None
 
     def estimate(self) -> FloatArray:
         """(K, 3) current estimate of every keyframe pose."""
@@ -160,7 +200,13 @@ class PoseGraph:
 
     def marginal_body(self, key: int) -> FloatArray:
         """(3, 3) iSAM2 marginal covariance of one keyframe, body frame."""
-        return np.asarray(self._isam.marginalCovariance(key))
+        try:
+            return np.asarray(self._isam.marginalCovariance(key))
+        except RuntimeError:
+            if self.factorization == "QR":
+                raise
+            self._restart_with_qr()
+            return np.asarray(self._isam.marginalCovariance(key))
 
     def set_estimate(self, poses_xytheta: FloatArray) -> None:
         """Replace the current estimate (K, 3) (the batch optimiser starts from it)."""
@@ -175,20 +221,44 @@ class PoseGraph:
             self.update()
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
-        result = gtsam.LevenbergMarquardtOptimizer(self.graph, self._estimate, params).optimize()
+        if self.factorization == "QR":
+            params.setLinearSolverType("MULTIFRONTAL_QR")
+        try:
+            result = gtsam.LevenbergMarquardtOptimizer(self.graph, self._estimate, params).optimize()
+        except RuntimeError as exc:
+            if self.factorization == "QR":
+                raise PoseGraphError(f"pose graph: {_first_line(exc)}") from None
+            self.factorization = "QR"
+            return self.optimize_batch(max_iterations)
         self._estimate = result
         return _values_to_array(result, self._n)
 
     def marginals_body(self) -> FloatArray:
-        """(K, 3, 3) marginal covariances of every keyframe at the current estimate, body frame."""
+        """(K, 3, 3) marginal covariances of every keyframe at the current estimate, body frame (from an
+        iSAM2 on QR when Cholesky fails: ``gtsam.Marginals`` has no QR path)."""
         if self._estimate is None:
             self.update()
-        marginals = gtsam.Marginals(self.graph, self._estimate)
-        return np.stack([np.asarray(marginals.marginalCovariance(k)) for k in range(self._n)])
+        if self.factorization == "CHOLESKY":
+            try:
+                marginals = gtsam.Marginals(self.graph, self._estimate)
+                return np.stack([np.asarray(marginals.marginalCovariance(k)) for k in range(self._n)])
+            except RuntimeError:
+                pass
+        isam = _isam2("QR")
+        try:
+            isam.update(self.graph, self._estimate)
+            return np.stack([np.asarray(isam.marginalCovariance(k)) for k in range(self._n)])
+        except RuntimeError as exc:
+            raise PoseGraphError(f"pose graph marginals: {_first_line(exc)}") from None
 
     def error(self) -> float:
         """Total graph error at the current estimate."""
         return float(self.graph.error(self._estimate))
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    return " ".join(lines[:2]) if lines else type(exc).__name__
 
 
 def _values_to_array(values: gtsam.Values, n: int) -> FloatArray:
