@@ -17,8 +17,10 @@ frequent one present).
 Beams. FLASER / RLASER carry no angles: an n-beam scan covers 180 degrees with
 ``angle_i = -pi/2 + i * pi / n`` in the laser frame (the convention of the published continuous-map
 reference code; checked on ``intel.gfs.log`` by ``tests/test_carmen.py``). ROBOTLASER1 carries its start
-angle, resolution and maximum range. Ranges ``>= InputConfig.carmen_range_max_m`` (FLASER) or the record's
-own maximum range (ROBOTLASER1) are no returns; ranges are kept as logged.
+angle, resolution and maximum range. No returns: ranges at or beyond the record's own maximum range
+(ROBOTLASER1), else beyond the log's repeated maximum reading (:mod:`datasets.no_return`: 51.15 m in the
+Radish logs of a 50 m laser) or ``InputConfig.carmen_range_max_m``, whichever is lower (FLASER);
+``meta["no_return"]`` says which rule gave which value. Ranges are kept as logged.
 
 Poses and frames. The first pose of a laser record is the laser's, the second the robot base's (odometry).
 ``scan_poses`` (and ``reference`` for a corrected log) are the **base** poses, and
@@ -69,6 +71,7 @@ from numpy.typing import NDArray
 from datasets.config import InputConfig
 from datasets.errors import DatasetError
 from datasets.keyframe_match import ScanMatch, match_keyframe_scans, match_scans
+from datasets.no_return import repeated_maximum_m
 from datasets.numtext import NumberParseError, parse_floats, parse_stamps_ns
 from datasets.stamps import NS_PER_S, monotone_stamps_ns, ns_to_decimal
 from datasets.types import Recording, ScanSequence, Trajectory, beam_angles_rad, wrap_angle_rad
@@ -161,6 +164,7 @@ def read_carmen(path: str | Path, cfg: InputConfig | None = None) -> Recording:
         "record_counts": counts,
         "ignored_records": {name: c for name, c in counts.items() if name not in (kind, "ODOM", "PARAM")},
         "corrected": corrected,
+        "no_return": laser["no_return"],
         "params": params,
         "ipc_stamps_ns": laser["ipc_ns"],
         "logger_stamps_ns": laser["logger_ns"],
@@ -368,10 +372,28 @@ def _parse_laser(path: Path, kind: str, lines: list[bytes], rows: list[int], cfg
     if kind == "ROBOTLASER1":
         start_rad, res_rad, max_m = (values[starts + k] for k in (1, 3, 4))
         keys = list(zip(start_rad.tolist(), res_rad.tolist(), beams.tolist(), strict=True))
-        range_max = np.where(max_m > 0, max_m, cfg.carmen_range_max_m)
-    else:  # FLASER / RLASER: 180 degrees, angle_i = -pi/2 + i*pi/n
+        declared = np.where(max_m > 0, max_m, cfg.carmen_range_max_m)
+        rule = "the maximum range declared in each ROBOTLASER1 record"
+    else:  # FLASER / RLASER: 180 degrees, angle_i = -pi/2 + i*pi/n; no declared maximum
         keys = [(-np.pi / 2, np.pi / n, n) for n in beams.tolist()]
-        range_max = np.full(n_rows, cfg.carmen_range_max_m)
+        declared = np.full(n_rows, cfg.carmen_range_max_m)
+        rule = "input.carmen_range_max_m"
+    # a reading the log repeats at the top of its range is its no-return code (fr-clinic logs 81.83 m
+    # beside its declared 81.9 m); below the declared maximum it takes over
+    repeated = repeated_maximum_m(flat_ranges)
+    if repeated is not None and repeated.value_m < float(np.min(declared)):
+        range_max = np.minimum(declared, repeated.value_m)
+        no_return = {
+            "rule": "the log's repeated maximum reading",
+            "range_m": repeated.value_m,
+            "values_m": list(repeated.values_m),
+            "readings": list(repeated.counts),
+        }
+    else:
+        range_max = declared
+        no_return = {"rule": rule, "range_m": float(np.min(declared))}
+        if repeated is not None:
+            no_return["repeated_maximum_m"] = list(repeated.values_m)
     angle_cache: dict[tuple, NDArray[np.float32]] = {}  # scans with equal settings share one array
     for k in set(keys):
         angle_cache[k] = beam_angles_rad(*k)
@@ -380,6 +402,7 @@ def _parse_laser(path: Path, kind: str, lines: list[bytes], rows: list[int], cfg
         "ranges": ranges,
         "angles": angles,
         "range_max_m": range_max,
+        "no_return": no_return,
         "laser_xytheta": poses[:, :3].copy(),
         "base_xytheta": poses[:, 3:].copy(),
         "ipc_ns": _stamps(path, kind, ipc, rows, "ipc timestamp"),
