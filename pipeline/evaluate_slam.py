@@ -174,6 +174,7 @@ def score_reference(
     truth_base = se2.compose(truth, se2.inverse(mount))
     nees_b = metrics.nees(result.poses_before_xytheta[scans], result.cov_before_xytheta[scans], truth_base)
     nees_a = metrics.nees(result.poses_after_xytheta[scans], result.cov_after_xytheta[scans], truth_base)
+    closures = score_loop_closures(result, scans, truth_base)
     return {
         "ate_rmse_m": {"before": metrics.ate_rmse(before, truth), "after": metrics.ate_rmse(after, truth)},
         "reference": {
@@ -182,8 +183,41 @@ def score_reference(
             "relations_consecutive": {"before": rel_before, "after": rel_after},
             "nees_mean": {"before": float(np.mean(nees_b[1:])), "after": float(np.mean(nees_a[1:]))},
             "nees_median": {"before": float(np.median(nees_b[1:])), "after": float(np.median(nees_a[1:]))},
+            "loop_closures": closures,
         },
     }
+
+
+def score_loop_closures(
+    result: SlamResult, scans: np.ndarray, truth_base: np.ndarray, min_separation_m: float | None = None
+) -> dict[str, Any]:
+    """Precision and recall of the accepted loop closures (:func:`slam.metrics.loop_closure_scores`).
+
+    The reference pose of a keyframe is that of the nearest matched scan (``scans``, with base poses
+    ``truth_base``) composed with our odometry from it to the keyframe (a corrected keyframe log holds
+    a pose for one scan in fifteen of intel.clf; the odometry over a few scans is accurate)."""
+    from slam.config import LoopClosureConfig
+
+    sep = LoopClosureConfig().min_separation_m if min_separation_m is None else min_separation_m
+    order = np.argsort(scans)
+    sorted_scans = np.asarray(scans)[order]
+    kf = result.keyframe_scans
+    i = np.clip(np.searchsorted(sorted_scans, kf), 1, len(sorted_scans) - 1)
+    j = np.where(np.abs(sorted_scans[i - 1] - kf) <= np.abs(sorted_scans[i] - kf), i - 1, i)
+    nearest_scan = sorted_scans[j]
+    odo = result.poses_before_xytheta
+    ref_kf = se2.compose(truth_base[order][j], se2.between(odo[nearest_scan], odo[kf]))
+    steps = np.hypot(*np.diff(odo[:, :2], axis=0).T) if len(odo) > 1 else np.zeros(0)
+    path = np.concatenate([[0.0], np.cumsum(steps)])[kf]
+    lc = result.loop_closures
+    return metrics.loop_closure_scores(
+        ref_kf,
+        path,
+        np.array([c.query_keyframe for c in lc], dtype=np.int64),
+        np.array([c.target_keyframe for c in lc], dtype=np.int64),
+        np.array([c.relative_xytheta for c in lc]).reshape(-1, 3),
+        sep,
+    )
 
 
 def match_relations(rec: Recording, relations: Any, relations_path: str | Path) -> tuple:
@@ -241,6 +275,10 @@ def _table(out: dict[str, Any]) -> dict[str, Any]:
                 f"{k} {v}" for k, v in ref["scan_matching"].items()
             )
         rows["NEES mean after (3 if consistent)"] = ref["nees_mean"]["after"]
+        lc = ref.get("loop_closures")
+        if lc and lc["precision"] is not None:
+            recall = "-" if lc["recall"] is None else f"{lc['recall']:.3f}"
+            rows["loop closures precision / recall"] = f"{lc['precision']:.3f} / {recall}"
     rel = out.get("relations")
     if rel:
         rows["relations"] = rel["count"]

@@ -36,7 +36,10 @@ from slam.config import LoopClosureConfig, OdometryConfig
 from slam.odometry import FIRST, MATCHED, OdometryResult
 from slam.scan_matching import (
     PointGrid,
-    correlative_search,
+    ScorePyramid,
+    SearchResult,
+    bnb_depth,
+    branch_and_bound_search,
     mark_free_space,
     overlap,
     refine_point_to_line,
@@ -95,6 +98,7 @@ class LoopCloser:
         odo_cfg: OdometryConfig,
         cov_scale: float,
         laser_in_base_xytheta: FloatArray | None = None,
+        cov_floor: FloatArray | None = None,
     ) -> None:
         self.odo = odometry
         mount = np.zeros(3) if laser_in_base_xytheta is None else np.asarray(laser_in_base_xytheta, float)
@@ -103,10 +107,12 @@ class LoopCloser:
         self.cfg = cfg
         self.odo_cfg = odo_cfg
         self.cov_scale = cov_scale
+        self.cov_floor = np.zeros((3, 3)) if cov_floor is None else np.asarray(cov_floor, dtype=np.float64)
         poses = odometry.poses_xytheta
         steps = np.hypot(*np.diff(poses[:, :2], axis=0).T) if len(poses) > 1 else np.zeros(0)
         self.path_m = np.concatenate([[0.0], np.cumsum(steps)])
         self._targets: OrderedDict[int, PointGrid] = OrderedDict()
+        self._pyramids: dict[int, ScorePyramid] = {}
         self._normals: dict[int, FloatArray] = {}
         self._usable = np.isin(odometry.status, (FIRST, MATCHED))
 
@@ -115,8 +121,12 @@ class LoopCloser:
     def _scan_normals(self, s: int) -> FloatArray:
         n = self._normals.get(s)
         if n is None:
+            oc = self.odo_cfg
             n = scan_normals(
-                self.odo.points_base[s], self.odo_cfg.normal_radius_m, self.odo_cfg.normal_max_neighbours
+                self.odo.points_base[s],
+                oc.normal_radius_m,
+                oc.normal_max_neighbours,
+                radius_per_m=oc.normal_radius_per_m,
             )
             self._normals[s] = n
         return n
@@ -172,8 +182,21 @@ class LoopCloser:
         mark_free_space(grid, origins[keep], pts[keep], self.cfg.free_space_margin_m)
         self._targets[j] = grid
         if len(self._targets) > 64:
-            self._targets.popitem(last=False)
+            old, _ = self._targets.popitem(last=False)
+            self._pyramids.pop(old, None)
         return grid
+
+    def target_pyramid(self, j: int) -> ScorePyramid:
+        """The branch-and-bound pyramid of :meth:`target_grid` ``(j)`` at the search resolution (cached)."""
+        pyr = self._pyramids.get(j)
+        if pyr is None:
+            cfg = self.cfg
+            res = self.odo_cfg.resolution_m * cfg.search_pool
+            pyr = ScorePyramid.of_grid(
+                self.target_grid(j), bnb_depth(cfg.max_window_m, res), pool=cfg.search_pool
+            )
+            self._pyramids[j] = pyr
+        return pyr
 
     def query_points(self, k: int) -> FloatArray:
         """The query cloud of keyframe ``k`` in its frame, thinned."""
@@ -192,7 +215,7 @@ class LoopCloser:
         """
         cfg = self.cfg
         sep = self.path_m[self.kf[k]] - self.path_m[self.kf[:k]]
-        js = np.nonzero(sep >= cfg.min_separation_m)[0]
+        js = np.nonzero((sep >= cfg.min_separation_m) & (np.arange(k) % cfg.target_stride == 0))[0]
         if js.size == 0:
             return []
         dp = estimate[js, :2] - estimate[k, :2]
@@ -244,16 +267,86 @@ class LoopCloser:
 
         if pts.shape[0] < self.odo_cfg.min_points or len(grid) < self.odo_cfg.min_points:
             return reject("too few points")
-        found = correlative_search(
-            grid,
+        found = branch_and_bound_search(
+            self.target_pyramid(j),
             pts,
             pred,
             win_xy,
             win_th,
-            self.odo_cfg.search_step_rad,
-            coarse_factor=cfg.coarse_factor,
-            coarse_theta_step_rad=cfg.coarse_step_rad,
+            cfg.search_step_rad,
+            min_score=cfg.min_score,
+            prior_sigma_xy_m=max(sig_xy, 1e-3),
+            prior_sigma_theta_rad=max(sig_th, 1e-4),
+            prior_weight=cfg.search_prior_weight,
         )
+        if found.score <= 0.0:
+            return reject("low score", pred, 0.0, 0.0, math.inf, math.nan)
+        return self._verify(k, j, found.pose_xytheta, found.score, pred, cov_rel, pts, grid, win_xy, win_th)
+
+    def nearby(self, k: int, estimate: FloatArray, radius_m: float, exclude: set[int]) -> list[int]:
+        """Target anchors at least ``min_separation_m`` of travel before keyframe ``k`` whose estimated
+        position lies within ``radius_m`` of it, nearest first (``exclude``: anchors to skip)."""
+        sep = self.path_m[self.kf[k]] - self.path_m[self.kf[:k]]
+        js = np.nonzero((sep >= self.cfg.min_separation_m) & (np.arange(k) % self.cfg.target_stride == 0))[0]
+        if js.size == 0:
+            return []
+        d = np.hypot(estimate[js, 0] - estimate[k, 0], estimate[js, 1] - estimate[k, 1])
+        order = np.argsort(d)
+        return [int(js[i]) for i in order if d[i] <= radius_m and int(js[i]) not in exclude]
+
+    def verify_at(self, k: int, j: int, estimate: FloatArray, cov_rel_world: FloatArray) -> LoopClosure:
+        """Refine and verify keyframe ``k`` against target ``j`` from their estimated relative pose, without
+        a search (the graph is already consistent: the dense pass after loop closure)."""
+        pred = se2.between(estimate[j], estimate[k])
+        r = se2.rot3(-estimate[j, 2])
+        return self._verify(
+            k,
+            j,
+            pred,
+            1.0,
+            pred,
+            r @ cov_rel_world @ r.T,
+            self.query_points(k),
+            self.target_grid(j),
+            0.0,
+            0.0,
+        )
+
+    def _verify(
+        self,
+        k: int,
+        j: int,
+        start: FloatArray,
+        score: float,
+        pred: FloatArray,
+        cov_rel: FloatArray,
+        pts: FloatArray,
+        grid: PointGrid,
+        win_xy: float,
+        win_th: float,
+    ) -> LoopClosure:
+        """Point-to-line refinement from ``start`` and the verification gates (module docstring)."""
+        cfg = self.cfg
+        found = SearchResult(start, score)
+
+        def reject(reason: str, pose=pred, score=0.0, fit=0.0, rms=math.inf, d2=math.nan) -> LoopClosure:
+            return LoopClosure(
+                k,
+                j,
+                int(self.kf[k]),
+                int(self.kf[j]),
+                pose,
+                np.zeros((3, 3)),
+                score,
+                fit,
+                rms,
+                d2,
+                False,
+                reason,
+                win_xy,
+                win_th,
+            )
+
         al = refine_point_to_line(
             grid,
             pts,
@@ -291,7 +384,7 @@ class LoopCloser:
             return reject("inconsistent", pose, found.score, fit, al.rms_m, d2)
         # information of the relative pose, in the query's frame (GTSAM / g2o convention), scaled
         cov_w = np.linalg.inv(info_w) * self.cov_scale
-        cov_body = se2.rotate_cov_to_body(pose, cov_w)
+        cov_body = se2.rotate_cov_to_body(pose, cov_w) + self.cov_floor
         info = np.linalg.inv(cov_body)
         return LoopClosure(
             k,

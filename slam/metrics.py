@@ -128,3 +128,57 @@ def nees(
     e = est - ref_a
     e[:, 2] = se2.wrap(e[:, 2])
     return np.einsum("ni,nij,nj->n", e, np.linalg.inv(cov_world), e)
+
+
+def loop_closure_scores(
+    keyframe_reference_xytheta: FloatArray,
+    keyframe_path_m: FloatArray,
+    query_keyframes: NDArray[np.int64],
+    target_keyframes: NDArray[np.int64],
+    relative_xytheta: FloatArray,
+    min_separation_m: float,
+    revisit_radius_m: float = 2.0,
+    coverage_m: float = 2.0,
+    tolerance_m: float = 0.2,
+    tolerance_deg: float = 2.0,
+) -> dict[str, float | int | None]:
+    """Precision and recall of accepted loop closures against reference keyframe poses.
+
+    A closure ``(query, target, relative)`` is correct when ``relative`` (the query's pose in the target's
+    frame) is within ``tolerance_m`` and ``tolerance_deg`` of the reference relative pose. A keyframe is a
+    *revisit* when the reference puts an earlier keyframe, at least ``min_separation_m`` of travel back,
+    within ``revisit_radius_m`` of it; it is *covered* when a correct closure's query keyframe lies within
+    ``coverage_m`` of travel of it. Precision = correct / accepted, recall = covered revisits / revisits
+    (None when there are none). Inputs: (K, 3) reference poses and (K,) travelled distance of every
+    keyframe, (C,) query and target keyframe indices and (C, 3) relative poses of the accepted closures.
+    """
+    ref = np.asarray(keyframe_reference_xytheta, dtype=np.float64)
+    path = np.asarray(keyframe_path_m, dtype=np.float64)
+    q = np.asarray(query_keyframes, dtype=np.int64)
+    t = np.asarray(target_keyframes, dtype=np.int64)
+    rel = np.asarray(relative_xytheta, dtype=np.float64).reshape(-1, 3)
+    correct = np.zeros(len(q), dtype=bool)
+    if len(q):
+        err = se2.between(se2.between(ref[t], ref[q]), rel)
+        correct = (np.hypot(err[:, 0], err[:, 1]) <= tolerance_m) & (
+            np.degrees(np.abs(err[:, 2])) <= tolerance_deg
+        )
+    revisit = np.zeros(len(ref), dtype=bool)
+    for k in range(len(ref)):
+        earlier = np.nonzero(path[:k] <= path[k] - min_separation_m)[0]
+        if earlier.size:
+            d = np.hypot(ref[earlier, 0] - ref[k, 0], ref[earlier, 1] - ref[k, 1])
+            revisit[k] = bool(np.any(d <= revisit_radius_m))
+    good_paths = path[q[correct]]
+    covered = np.zeros(len(ref), dtype=bool)
+    if good_paths.size:
+        covered = np.min(np.abs(path[:, None] - good_paths[None, :]), axis=1) <= coverage_m
+    n_rev = int(revisit.sum())
+    return {
+        "accepted": len(q),
+        "correct": int(correct.sum()),
+        "precision": float(correct.mean()) if len(q) else None,
+        "revisit_keyframes": n_rev,
+        "covered_revisits": int((revisit & covered).sum()),
+        "recall": float((revisit & covered).sum() / n_rev) if n_rev else None,
+    }

@@ -34,7 +34,14 @@ from numpy.typing import NDArray
 
 from slam import geometry as se2
 from slam.config import OdometryConfig
-from slam.scan_matching import PointGrid, correlative_search, refine_point_to_line, scan_normals
+from slam.scan_matching import (
+    PointGrid,
+    SearchResult,
+    branch_and_bound_search,
+    correlative_search,
+    refine_point_to_line,
+    scan_normals,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -94,6 +101,7 @@ class OdometryResult:
     rms_m: FloatArray
     points_base: list[FloatArray]
     timings_s: dict[str, float] = field(default_factory=dict)
+    submap_restarts: int = 0  # submaps started afresh after a run of rejected registrations
 
     def status_counts(self) -> dict[str, int]:
         """Number of scans per status name."""
@@ -173,6 +181,12 @@ class _Submaps:
             self._pool.append(self.grids.pop(0))
             self.counts.pop(0)
 
+    def clear(self) -> None:
+        """Drop every submap (their grids go back to the pool): the next insertion starts afresh."""
+        self._pool.extend(self.grids)
+        self.grids = []
+        self.counts = []
+
 
 class _KissRegistration:
     """KISS-ICP's voxel map and registration driven directly (pybind core), 2D poses in and out."""
@@ -182,9 +196,7 @@ class _KissRegistration:
 
         self._kiss = kiss
         self.cfg = cfg
-        self.map = kiss._VoxelHashMap(
-            voxel_size=cfg.voxel_size_m, max_distance=cfg.max_range_m, max_points_per_voxel=20
-        )
+        self.reset()
         self.reg = kiss._Registration(max_num_iterations=500, convergence_criterion=1e-4, max_num_threads=1)
 
     @staticmethod
@@ -213,6 +225,44 @@ class _KissRegistration:
 
     def insert(self, pose: FloatArray, points_base: FloatArray) -> None:
         self.map._update(self._lift(points_base), self._t(pose))
+
+    def reset(self) -> None:
+        """An empty voxel map."""
+        self.map = self._kiss._VoxelHashMap(
+            voxel_size=self.cfg.voxel_size_m, max_distance=self.cfg.max_range_m, max_points_per_voxel=20
+        )
+
+
+def search_window(
+    target: PointGrid,
+    points_xy: FloatArray,
+    center_xytheta: FloatArray,
+    window_m: float,
+    window_rad: float,
+    theta_step_rad: float,
+    sigma_xytheta: tuple[float, float] | None = None,
+    prior_weight: float = 0.0,
+) -> SearchResult:
+    """Correlative search of ``center +- window``: exhaustive for a window of a few cells (the wheel-seeded
+    case), by branch and bound for wider ones (no wheels, sparse scans), where it is exact and much faster
+    and weighs the score against the motion prior ``(sigma_xy_m, sigma_theta_rad)`` of the centre
+    (:func:`slam.scan_matching.branch_and_bound_search`). Wide rotation windows use a step of at least
+    0.25 deg (the refinement that follows recovers the rest)."""
+    if window_m <= 4 * target.resolution_m and window_rad <= 0.2:
+        return correlative_search(target, points_xy, center_xytheta, window_m, window_rad, theta_step_rad)
+    step = max(theta_step_rad, math.radians(0.25)) if window_rad > 0.2 else theta_step_rad
+    sxy, sth = sigma_xytheta if sigma_xytheta is not None else (None, None)
+    return branch_and_bound_search(
+        target,
+        points_xy,
+        center_xytheta,
+        window_m,
+        window_rad,
+        step,
+        prior_sigma_xy_m=sxy,
+        prior_sigma_theta_rad=sth,
+        prior_weight=prior_weight,
+    )
 
 
 def remap_degenerate(
@@ -273,6 +323,9 @@ def run_odometry(
     else:
         wheel_inc = None
     last_inc = np.zeros(3)
+    velocity_known = False  # without wheels: last_inc comes from two registered scans
+    fallback_run = 0  # consecutive rejected registrations
+    restarts = 0
     last_insert: FloatArray | None = None
     chunk = max(1, n // 200)
     with stage(progress, "odometry", n) as bar:
@@ -284,29 +337,37 @@ def run_odometry(
                 pred = se2.compose(poses[i - 1], inc)
                 cov_inc = wheel_increment_cov(inc, cfg)
                 if wheel_inc is None:
-                    cov_inc = np.diag([cfg.no_wheels_window_m**2] * 2 + [cfg.no_wheels_window_rad**2])
+                    cov_inc = np.diag([cfg.no_wheels_sigma_m**2] * 2 + [cfg.no_wheels_sigma_rad**2])
                 cov_pred_w = se2.rotate_cov_to_world(pred, cov_inc)
                 target = submaps.target
                 accepted = False
                 if target is not None and pts.shape[0] >= cfg.min_points:
                     if cfg.normal_check:
                         t0 = time.perf_counter()
-                        nrm = scan_normals(pts, cfg.normal_radius_m, cfg.normal_max_neighbours)
+                        nrm = scan_normals(
+                            pts,
+                            cfg.normal_radius_m,
+                            cfg.normal_max_neighbours,
+                            radius_per_m=cfg.normal_radius_per_m,
+                        )
                         t_normals += time.perf_counter() - t0
                     t0 = time.perf_counter()
-                    prior_info = np.linalg.inv(cov_pred_w)
-                    if wheel_inc is None:  # a constant-velocity guess: search wider
+                    if wheel_inc is None:  # a constant-velocity guess: search wide, prefer the guess
                         window_m = max(cfg.search_window_m, cfg.no_wheels_window_m)
                         window_rad = max(cfg.search_window_rad, cfg.no_wheels_window_rad)
-                    else:
-                        window_m = cfg.search_window_m
+                    else:  # the window covers 3 sigma of the wheel increment (sparse logs: ~1 m steps)
+                        window_m = max(cfg.search_window_m, 3.0 * math.sqrt(cov_inc[0, 0]))
                         window_rad = cfg.search_window_rad + 0.3 * abs(inc[2])
                     if kiss is not None:
                         start = kiss.align(pts, pred)
                     else:
-                        start = correlative_search(
-                            target, pts, pred, window_m, window_rad, cfg.search_step_rad
+                        # the motion prior of a wide search; none before the velocity is known
+                        sigma = (math.sqrt(cov_inc[0, 0]), math.sqrt(cov_inc[2, 2]))
+                        w = cfg.search_prior_weight if wheel_inc is not None or velocity_known else 0.0
+                        start = search_window(
+                            target, pts, pred, window_m, window_rad, cfg.search_step_rad, sigma, w
                         ).pose_xytheta
+                    prior_info = np.linalg.inv(cov_pred_w)
                     al = refine_point_to_line(
                         target,
                         pts,
@@ -325,11 +386,15 @@ def run_odometry(
                         pose, hessian = remap_degenerate(pred, pose, al.hessian, cfg.degenerate_ratio)
                     frac = al.inliers / pts.shape[0]
                     dev = se2.between(pred, pose)
-                    accepted = (
-                        frac >= cfg.min_inlier_fraction
-                        and math.hypot(dev[0], dev[1]) <= max(cfg.gate_xy_m, window_m)
-                        and abs(dev[2]) <= max(cfg.gate_theta_rad, window_rad)
-                    )
+                    if wheel_inc is not None:
+                        accepted = (
+                            frac >= cfg.min_inlier_fraction
+                            and math.hypot(dev[0], dev[1]) <= max(cfg.gate_xy_m, math.sqrt(2.0) * window_m)
+                            and abs(dev[2]) <= max(cfg.gate_theta_rad, window_rad)
+                        )
+                    else:  # the guess is no fallback: a match better than chance is kept
+                        reach_m = math.sqrt(2.0) * window_m + cfg.gate_xy_m
+                        accepted = frac >= cfg.no_wheels_min_inliers and math.hypot(dev[0], dev[1]) <= reach_m
                     t_match += time.perf_counter() - t0
                     inliers[i] = frac
                     rms[i] = al.rms_m
@@ -350,17 +415,36 @@ def run_odometry(
                     )
                     status[i] = FALLBACK if pts.shape[0] >= cfg.min_points else TOO_FEW_POINTS
                 last_inc = se2.between(poses[i - 1], poses[i])
+                velocity_known = status[i] == MATCHED
             else:
                 status[i] = FIRST if pts.shape[0] >= cfg.min_points else TOO_FEW_POINTS
+            # a run of rejected registrations means the submap no longer covers the scans (the robot left
+            # it): start a new one from the wheel pose, or the odometry never recovers
+            fallback_run = fallback_run + 1 if status[i] in (FALLBACK, TOO_FEW_POINTS) else 0
+            restart = fallback_run >= cfg.submap_restart_fallbacks and pts.shape[0] >= cfg.min_points
+            if restart:
+                submaps.clear()
+                if kiss is not None:
+                    kiss.reset()
+                fallback_run = 0
+                restarts += 1
             # insert registered scans that moved enough into the submaps
-            if status[i] in (FIRST, MATCHED) and (
-                last_insert is None
-                or math.hypot(*(poses[i, :2] - last_insert[:2])) >= cfg.insert_distance_m
-                or abs(se2.wrap(poses[i, 2] - last_insert[2])) >= cfg.insert_rotation_rad
+            if restart or (
+                status[i] in (FIRST, MATCHED)
+                and (
+                    last_insert is None
+                    or math.hypot(*(poses[i, :2] - last_insert[:2])) >= cfg.insert_distance_m
+                    or abs(se2.wrap(poses[i, 2] - last_insert[2])) >= cfg.insert_rotation_rad
+                )
             ):
                 if nrm is None:
                     t0 = time.perf_counter()
-                    nrm = scan_normals(pts, cfg.normal_radius_m, cfg.normal_max_neighbours)
+                    nrm = scan_normals(
+                        pts,
+                        cfg.normal_radius_m,
+                        cfg.normal_max_neighbours,
+                        radius_per_m=cfg.normal_radius_per_m,
+                    )
                     t_normals += time.perf_counter() - t0
                 t0 = time.perf_counter()
                 submaps.insert(poses[i], pts, nrm)
@@ -373,4 +457,4 @@ def run_odometry(
         if n % chunk:
             bar.advance(n % chunk)
     timings = {"odometry_match_s": t_match, "odometry_insert_s": t_insert, "odometry_normals_s": t_normals}
-    return OdometryResult(poses, covs, status, inliers, rms, points_base, timings)
+    return OdometryResult(poses, covs, status, inliers, rms, points_base, timings, restarts)

@@ -63,6 +63,7 @@ class SlamResult:
     graph_edges: tuple[Edge, ...]
     variance_factor: float = 1.0
     timings_s: dict[str, float] = field(default_factory=dict)
+    wheel_odometry: str = "as given"  # where the wheel odometry came from (:func:`wheel_odometry`)
     # 3D inputs only (:mod:`slam.system3d`): (N, 4, 4) poses, (N, 6, 6) and (K, 6, 6) world-frame
     # (x, y, z, rx, ry, rz) covariances; the 2D fields above are their SE(2) projections
     poses_before_se3: FloatArray | None = None
@@ -87,6 +88,7 @@ class SlamResult:
             "loop_closures_accepted": len(self.loop_closures),
             "loop_closures_rejected": len(self.rejected_loop_closures),
             "odometry_fallbacks": int(np.sum(self.odometry_status >= 2)),
+            "wheel_odometry": self.wheel_odometry,
             "timings_s": dict(self.timings_s),
         }
 
@@ -113,8 +115,27 @@ def run_slam_recording(
         from slam.system3d import run_slam_clouds
 
         return run_slam_clouds(recording.clouds, config, progress)
-    wheel = recording.scan_poses if recording.scan_poses is not None else recording.odometry
-    return run_slam(recording.scans, wheel, recording.laser_in_base_xytheta, config, progress)
+    wheel, wheel_source = wheel_odometry(recording)
+    result = run_slam(recording.scans, wheel, recording.laser_in_base_xytheta, config, progress)
+    return replace(result, wheel_odometry=wheel_source)
+
+
+def wheel_odometry(recording: Recording) -> tuple[Trajectory | None, str]:
+    """The wheel odometry SLAM should use, and a phrase saying where it comes from.
+
+    A SLAM-corrected log (``meta["corrected"]``: ``*.gfs.log``, ``*-corrected.log*``) logs its corrected
+    poses in the odometry fields of its scans and in its ODOM records (their increments equal the corrected
+    ones after every scan), so it has no wheel odometry: SLAM runs on its scans alone rather than being
+    handed the answer. Otherwise the pose logged with each scan (CARMEN's raw odometry), else the odometry
+    topic, else none.
+    """
+    if recording.meta.get("corrected"):
+        return None, "none: the log is SLAM-corrected (its odometry fields are the corrected poses)"
+    if recording.scan_poses is not None and len(recording.scan_poses):
+        return recording.scan_poses, "the odometry logged with each scan"
+    if recording.odometry is not None and len(recording.odometry):
+        return recording.odometry, "the odometry topic"
+    return None, "none (scans only)"
 
 
 def run_slam(
@@ -187,7 +208,8 @@ def run_slam(
     est[0] = poses[kf[0]]
     cov_w = np.zeros((k_count, 3, 3))  # world-frame marginals (unscaled) when each keyframe was added
     cov_w[0] = cov0
-    closer = LoopCloser(odo, kf, cfg.loop_closure, oc, gc.loop_cov_scale)
+    loop_floor = np.diag([gc.loop_min_sigma_xy_m, gc.loop_min_sigma_xy_m, gc.loop_min_sigma_theta_rad]) ** 2
+    closer = LoopCloser(odo, kf, cfg.loop_closure, oc, gc.loop_cov_scale, cov_floor=loop_floor)
     lc = cfg.loop_closure
     accepted: list[LoopClosure] = []
     rejected: list[LoopClosure] = []
@@ -235,6 +257,33 @@ def run_slam(
             bar.advance()
     timings["loop_search_s"] = t_search
     timings["graph_incremental_s"] = time.perf_counter() - t0 - t_search
+
+    # dense pass: every keyframe against the targets the (now consistent) graph puts near it
+    t0 = time.perf_counter()
+    if lc.enabled and lc.dense_radius_m > 0 and accepted:
+        est = graph.estimate()
+        linked: dict[int, set[int]] = {}
+        for c in accepted:
+            linked.setdefault(c.query_keyframe, set()).add(c.target_keyframe)
+        dense: list[LoopClosure] = []
+        for k in range(k_count):
+            for j in closer.nearby(k, est, lc.dense_radius_m, linked.get(k, set()))[: lc.dense_targets]:
+                c = closer.verify_at(k, j, est, (cov_w[k] + cov_w[j]) * max(scale, lc.search_cov_inflation))
+                if c.accepted:
+                    dense.append(c)
+        for c in dense:
+            graph.add_between(
+                "loop",
+                c.target_keyframe,
+                c.query_keyframe,
+                c.relative_xytheta,
+                np.linalg.inv(c.information),
+                robust=lc.robust_kernel,
+                robust_width=lc.robust_kernel_width * math.sqrt(max(scale, 1.0)),
+            )
+        accepted.extend(dense)
+        graph.update(extra_iterations=1)
+    timings["dense_pass_s"] = time.perf_counter() - t0
 
     # batch: re-weight every factor by the a-posteriori variance factor and solve again until it settles
     t0 = time.perf_counter()
@@ -293,6 +342,7 @@ def run_slam(
                 "odometry_s",
                 "loop_search_s",
                 "graph_incremental_s",
+                "dense_pass_s",
                 "graph_batch_s",
                 "marginals_s",
             )

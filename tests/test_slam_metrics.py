@@ -71,3 +71,23 @@ def test_index_at_stamps() -> None:
     q = np.array([-5, 49, 51, 160, 301, 400], dtype=np.int64)
     np.testing.assert_array_equal(metrics.index_at_stamps(stamps, q, 10), [0, -1, -1, -1, 3, -1])
     np.testing.assert_array_equal(metrics.index_at_stamps(stamps, q, 60), [0, 0, 1, 2, 3, -1])
+
+
+def test_loop_closure_precision_and_recall() -> None:
+    """An out-and-back corridor: keyframes 0-10 go out 10 m, 11-21 come back; every way back passes the
+    way out. Two closures, one right and one 1 m off; revisits are the keyframes 20 m or more of travel
+    after a keyframe within 2 m of them."""
+    x = np.r_[np.arange(11.0), 10.0 - np.arange(1, 11.0)]
+    ref = np.column_stack([x, np.zeros(21), np.r_[np.zeros(11), np.full(10, np.pi)]])
+    path = np.arange(21.0)
+    rel_true = se2.between(ref[[2, 1]], ref[[18, 19]])
+    rel = rel_true.copy()
+    rel[1, 0] += 1.0
+    out = metrics.loop_closure_scores(ref, path, np.array([18, 19]), np.array([2, 1]), rel, 10.0)
+    assert out["accepted"] == 2 and out["correct"] == 1 and out["precision"] == 0.5
+    # revisits: keyframes 14..20 (x = 6..0, within 2 m of a keyframe 10 m or more of travel back);
+    # covered: 16..20, within 2 m of travel of the correct closure's query keyframe 18
+    assert out["revisit_keyframes"] == 7
+    assert out["covered_revisits"] == 5 and out["recall"] == pytest.approx(5 / 7)
+    none = metrics.loop_closure_scores(ref, path, np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), 10.0)
+    assert none["precision"] is None and none["recall"] == 0.0

@@ -88,7 +88,7 @@ def test_odometry_on_the_loop_world_with_and_without_wheels() -> None:
     step_err = se2.between(with_wheels.poses_xytheta[:-1], with_wheels.poses_xytheta[1:]) - se2.between(
         truth[:-1], truth[1:]
     )
-    assert 0.8 < step_err[gallery[1:], 0].sum() < 1.4  # along the gallery: the wheels' drift
+    assert 0.6 < step_err[gallery[1:], 0].sum() < 1.4  # along the gallery: mostly the wheels' drift
     assert abs(step_err[gallery[1:], 1].sum()) < 0.1  # across it: the scans
     sd_along = np.sqrt(with_wheels.cov_xytheta[:, 0, 0])
     assert sd_along[gallery].mean() > 5 * sd_along[~gallery].mean()
@@ -153,3 +153,57 @@ def test_degenerate_directions_keep_the_prediction_and_its_uncertainty() -> None
     pose, info = remap_degenerate(pred, pred + np.array([0.2 * c, 0.2 * s, 0.0]), h2, 0.02)
     np.testing.assert_allclose(pose, pred, atol=1e-12)
     assert np.abs(info[:2, :2] @ np.array([c, s])).max() < 1e-9
+
+
+def test_scans_alone_register_a_sparse_real_log() -> None:
+    """seattle's corrected log: 241 scans about a metre and up to 1.4 rad apart, and no wheel odometry
+    (its odometry fields are the corrected poses, which SLAM must not be handed). The wide branch-and-bound
+    search with a constant-velocity motion prior registers every scan; measured ATE 0.06 m over 190 m."""
+    from slam.system import wheel_odometry
+
+    rec = open_dataset(data_file("radish-corrected/seattle-corrected.log.gz"))
+    wheel, source = wheel_odometry(rec)
+    assert wheel is None and "corrected" in source
+    cfg = OdometryConfig()
+    sc = rec.scans
+    pts = [
+        scan_points_base(
+            sc.ranges_m[i],
+            sc.angles_rad[i],
+            sc.range_min_m[i],
+            sc.range_max_m[i],
+            rec.laser_in_base_xytheta,
+            cfg.min_range_m,
+            cfg.max_range_m,
+        )
+        for i in range(len(sc))
+    ]
+    odo = run_odometry(pts, None, cfg)
+    assert odo.status_counts()["matched"] == len(sc) - 1
+    truth = rec.reference.poses_xytheta
+    assert metrics.ate_rmse(odo.poses_xytheta, truth) < 0.15
+    step = se2.between(
+        se2.between(truth[:-1], truth[1:]), se2.between(odo.poses_xytheta[:-1], odo.poses_xytheta[1:])
+    )
+    assert np.abs(step[:, 2]).max() < np.radians(3)  # no turn registered the wrong way
+
+
+def test_a_run_of_rejected_registrations_restarts_the_submaps() -> None:
+    """The robot walks out of its submap while every registration is rejected (here: scans of a second
+    room that the wheels say is elsewhere): after submap_restart_fallbacks rejections the submaps start
+    afresh at the wheel pose and the following scans register again."""
+    rng = np.random.default_rng(1)
+    ang = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    room_a = np.stack([6 * np.cos(ang), 4 * np.sin(ang)], axis=1)
+    room_b = np.stack([3 * np.cos(ang) + 1.0, 5 * np.sin(ang) ** 3], axis=1)  # another shape
+    n = 20
+    wheel = np.column_stack([np.linspace(0, 1.9, n), np.zeros(n), np.zeros(n)])
+    pts = [
+        (room_a if i < 8 else room_b) - wheel[i, :2] + rng.normal(0, 0.003, room_a.shape) for i in range(n)
+    ]
+    odo = run_odometry(pts, wheel, OdometryConfig(submap_restart_fallbacks=3))
+    assert np.all(odo.status[8:11] == FALLBACK)  # room b does not match room a's submap
+    assert odo.submap_restarts == 1
+    assert np.all(odo.status[11:] == MATCHED)  # matched against the new submap
+    stuck = run_odometry(pts, wheel, OdometryConfig(submap_restart_fallbacks=100))
+    assert np.all(stuck.status[8:] == FALLBACK) and stuck.submap_restarts == 0
