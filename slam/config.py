@@ -149,6 +149,11 @@ class LoopClosureConfig(BaseModel):
         description="least travel after an accepted closure before the next search (closures in a "
         "row match the same place: their errors are not independent)",
     )
+    search_spacing_m: float = Field(
+        2.0,
+        ge=0,
+        description="least travel between two searches (0: every keyframe); bounds the search's cost",
+    )
     overlap_radius_m: float = Field(
         2.0, ge=0, description="keyframes this far apart can still see each other"
     )
@@ -159,6 +164,12 @@ class LoopClosureConfig(BaseModel):
         "running variance factor if larger (a generous search; verification decides)",
     )
     gate_chi2: float = Field(9.21, gt=0, description="Mahalanobis gate of candidates (chi2 2 dof, 99%)")
+    max_distance_m: float = Field(
+        15.0,
+        gt=0,
+        description="candidates farther than this in the current estimate are not searched (their views "
+        "overlap little, and a search window centred on them rarely reaches the truth)",
+    )
     max_candidates: int = Field(3, ge=1, le=50, description="candidates matched per keyframe, nearest first")
     max_accepted_per_keyframe: int = Field(1, ge=1, le=50, description="stop after this many accepted")
     target_keyframes: int = Field(
@@ -194,6 +205,18 @@ class LoopClosureConfig(BaseModel):
         0.0044, gt=0, description="rotation step of the search (0.25 deg: 8.7 cm at 20 m, below a cell)"
     )
     query_voxel_m: float = Field(0.1, gt=0, description="query points are thinned to one per voxel")
+    search_max_points: int = Field(
+        200,
+        ge=10,
+        description="the search scores at most this many of the query's points (evenly spaced; its cost "
+        "grows with them); the refinement and the gates use them all",
+    )
+    map_range_m: float = Field(
+        30.0,
+        gt=0,
+        description="query and target maps keep the points within this range of their laser (far points "
+        "make large, slow maps: 60 m returns in a hospital's halls)",
+    )
     min_score: float = Field(0.3, ge=0, le=1, description="least mean correlative score")
     min_hit_fraction: float = Field(
         0.25,

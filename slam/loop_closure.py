@@ -146,8 +146,9 @@ class LoopCloser:
         if len(scans) == 0:
             return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
         rel = se2.between(self.odo.poses_xytheta[anchor_scan], self.odo.poses_xytheta[scans])
-        counts = np.array([self.odo.points_base[s].shape[0] for s in scans])
-        pts = np.concatenate([self.odo.points_base[s] for s in scans])
+        near = [self._near(int(s)) for s in scans]
+        counts = np.array([int(m.sum()) for m in near])
+        pts = np.concatenate([self.odo.points_base[s][m] for s, m in zip(scans, near, strict=True)])
         per_point = np.repeat(rel, counts, axis=0)
         c, s_ = np.cos(per_point[:, 2]), np.sin(per_point[:, 2])
 
@@ -159,8 +160,14 @@ class LoopCloser:
         origins = np.repeat(origins, counts, axis=0)
         if not normals:
             return out, None, origins
-        nrm = np.concatenate([self._scan_normals(int(s)) for s in scans])
+        nrm = np.concatenate([self._scan_normals(int(s))[m] for s, m in zip(scans, near, strict=True)])
         return out, rotate(nrm), origins
+
+    def _near(self, s: int) -> NDArray[np.bool_]:
+        """Which points of scan ``s`` lie within ``map_range_m`` of its laser (far points make big, slow maps
+        and add little to a closure)."""
+        d = self.odo.points_base[s] - self.laser_origin_base
+        return np.hypot(d[:, 0], d[:, 1]) <= self.cfg.map_range_m
 
     def target_grid(self, j: int) -> PointGrid:
         """The map around keyframe ``j`` in its frame (cached)."""
@@ -221,7 +228,7 @@ class LoopCloser:
         dp = estimate[js, :2] - estimate[k, :2]
         s = cov_world[js, :2, :2] + cov_world[k, :2, :2] + cfg.overlap_radius_m**2 * np.eye(2)
         d2 = np.einsum("ni,nij,nj->n", dp, np.linalg.inv(s), dp)
-        ok = d2 <= cfg.gate_chi2
+        ok = (d2 <= cfg.gate_chi2) & (np.hypot(dp[:, 0], dp[:, 1]) <= cfg.max_distance_m)
         order = np.argsort(d2[ok])[: cfg.max_candidates]
         return [(int(js[ok][i]), float(d2[ok][i])) for i in order]
 
@@ -267,9 +274,10 @@ class LoopCloser:
 
         if pts.shape[0] < self.odo_cfg.min_points or len(grid) < self.odo_cfg.min_points:
             return reject("too few points")
+        stride = max(1, math.ceil(pts.shape[0] / cfg.search_max_points))
         found = branch_and_bound_search(
             self.target_pyramid(j),
-            pts,
+            pts[::stride],
             pred,
             win_xy,
             win_th,

@@ -209,12 +209,13 @@ def run_slam(
     cov_w = np.zeros((k_count, 3, 3))  # world-frame marginals (unscaled) when each keyframe was added
     cov_w[0] = cov0
     loop_floor = np.diag([gc.loop_min_sigma_xy_m, gc.loop_min_sigma_xy_m, gc.loop_min_sigma_theta_rad]) ** 2
-    closer = LoopCloser(odo, kf, cfg.loop_closure, oc, gc.loop_cov_scale, cov_floor=loop_floor)
+    closer = LoopCloser(odo, kf, cfg.loop_closure, oc, gc.loop_cov_scale, mount, loop_floor)
     lc = cfg.loop_closure
     accepted: list[LoopClosure] = []
     rejected: list[LoopClosure] = []
     scale = 1.0  # running a-posteriori variance factor
     last_closure_path_m = -math.inf
+    last_search_path_m = -math.inf
     with stage(progress, "loop closure", k_count) as bar:
         for k in range(1, k_count):
             graph.add_pose(se2.compose(est[k - 1], rel[k - 1]))
@@ -222,8 +223,13 @@ def run_slam(
             graph.update()
             est[k] = graph.estimate_of(k)
             cov_w[k] = se2.rotate_cov_to_world(est[k], graph.marginal_body(k))
-            spaced = closer.path_m[kf[k]] - last_closure_path_m >= lc.closure_spacing_m
+            here_m = closer.path_m[kf[k]]
+            spaced = (
+                here_m - last_closure_path_m >= lc.closure_spacing_m
+                and here_m - last_search_path_m >= lc.search_spacing_m
+            )
             if lc.enabled and spaced:
+                last_search_path_m = here_m
                 ts = time.perf_counter()
                 found = []
                 query = None
