@@ -80,6 +80,15 @@ class OdometryConfig(BaseModel):
     no_wheels_window_rad: float = Field(
         3.1416, ge=0, description="... and its rotational half-window (every heading: turns on the spot)"
     )
+    no_wheels_dense_step_m: float = Field(
+        0.2,
+        ge=0,
+        description="without wheels, after a step this short (and no_wheels_dense_step_rad) the scans are "
+        "dense (10 Hz and more) and the next search uses the compact no_wheels_dense_window_*",
+    )
+    no_wheels_dense_step_rad: float = Field(0.2, ge=0, description="... and this small a turn")
+    no_wheels_dense_window_m: float = Field(0.6, ge=0, description="compact translational half-window")
+    no_wheels_dense_window_rad: float = Field(0.5, ge=0, description="compact rotational half-window")
     no_wheels_sigma_m: float = Field(
         0.5,
         gt=0,

@@ -182,3 +182,26 @@ def loop_closure_scores(
         "covered_revisits": int((revisit & covered).sum()),
         "recall": float((revisit & covered).sum() / n_rev) if n_rev else None,
     }
+
+
+def reference_noise_sigma(reference_xytheta: FloatArray, odometry_xytheta: FloatArray) -> tuple[float, float]:
+    """Per-pose noise ``(sigma_xy_m, sigma_theta_rad)`` of a reference trajectory, from its consecutive
+    relative poses against the same steps of a locally accurate odometry (M, 3) each.
+
+    A SLAM-corrected reference (GMapping's) jitters from pose to pose by more than a scan-to-map odometry
+    errs over one step; the robust spread of the step differences (1.4826 MAD per axis), divided by
+    sqrt(2) for the two poses of a step, estimates that jitter (an upper bound: the odometry's own step
+    error is included). NEES against such a reference counts this noise as our error.
+    """
+    ref = np.asarray(reference_xytheta, dtype=np.float64)
+    odo = np.asarray(odometry_xytheta, dtype=np.float64)
+    if ref.shape[0] < 3:
+        return 0.0, 0.0
+    d = se2.between(se2.between(ref[:-1], ref[1:]), se2.between(odo[:-1], odo[1:]))
+    d[:, 2] = se2.wrap(d[:, 2])
+
+    def robust(x: FloatArray) -> float:
+        return float(1.4826 * np.median(np.abs(x - np.median(x))))
+
+    sigma_xy = np.sqrt(0.5 * (robust(d[:, 0]) ** 2 + robust(d[:, 1]) ** 2)) / np.sqrt(2.0)
+    return float(sigma_xy), robust(d[:, 2]) / float(np.sqrt(2.0))

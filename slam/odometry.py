@@ -242,16 +242,24 @@ def search_window(
     theta_step_rad: float,
     sigma_xytheta: tuple[float, float] | None = None,
     prior_weight: float = 0.0,
+    thin: bool = False,
 ) -> SearchResult:
     """Correlative search of ``center +- window``: exhaustive for a window of a few cells (the wheel-seeded
     case), by branch and bound for wider ones (no wheels, sparse scans), where it is exact and much faster
     and weighs the score against the motion prior ``(sigma_xy_m, sigma_theta_rad)`` of the centre
     (:func:`slam.scan_matching.branch_and_bound_search`). Wide rotation windows use a step of at least
-    0.25 deg (the refinement that follows recovers the rest)."""
+    0.25 deg (the refinement that follows recovers the rest); ``thin`` searches with one point per 2 x 2
+    cells (dense scans)."""
     if window_m <= 4 * target.resolution_m and window_rad <= 0.2:
         return correlative_search(target, points_xy, center_xytheta, window_m, window_rad, theta_step_rad)
     step = max(theta_step_rad, math.radians(0.25)) if window_rad > 0.2 else theta_step_rad
     sxy, sth = sigma_xytheta if sigma_xytheta is not None else (None, None)
+    if thin:
+        # one point per 2x2 cells, as a dense scanner's neighbouring beams score the same cells (681 beams
+        # within 5.6 m)
+        cells = np.floor(points_xy / (2.0 * target.resolution_m)).astype(np.int64)
+        _, first = np.unique(cells[:, 0] * 1_000_003 + cells[:, 1], return_index=True)
+        points_xy = points_xy[np.sort(first)]
     return branch_and_bound_search(
         target,
         points_xy,
@@ -352,9 +360,18 @@ def run_odometry(
                         )
                         t_normals += time.perf_counter() - t0
                     t0 = time.perf_counter()
+                    dense = False
                     if wheel_inc is None:  # a constant-velocity guess: search wide, prefer the guess
                         window_m = max(cfg.search_window_m, cfg.no_wheels_window_m)
                         window_rad = max(cfg.search_window_rad, cfg.no_wheels_window_rad)
+                        dense = (
+                            velocity_known
+                            and math.hypot(last_inc[0], last_inc[1]) <= cfg.no_wheels_dense_step_m
+                            and abs(last_inc[2]) <= cfg.no_wheels_dense_step_rad
+                        )
+                        if dense:  # scans a few centimetres apart: a compact window suffices
+                            window_m = min(window_m, cfg.no_wheels_dense_window_m)
+                            window_rad = min(window_rad, cfg.no_wheels_dense_window_rad)
                     else:  # the window covers 3 sigma of the wheel increment (sparse logs: ~1 m steps)
                         window_m = max(cfg.search_window_m, 3.0 * math.sqrt(cov_inc[0, 0]))
                         window_rad = cfg.search_window_rad + 0.3 * abs(inc[2])
@@ -365,7 +382,7 @@ def run_odometry(
                         sigma = (math.sqrt(cov_inc[0, 0]), math.sqrt(cov_inc[2, 2]))
                         w = cfg.search_prior_weight if wheel_inc is not None or velocity_known else 0.0
                         start = search_window(
-                            target, pts, pred, window_m, window_rad, cfg.search_step_rad, sigma, w
+                            target, pts, pred, window_m, window_rad, cfg.search_step_rad, sigma, w, dense
                         ).pose_xytheta
                     prior_info = np.linalg.inv(cov_pred_w)
                     al = refine_point_to_line(

@@ -656,27 +656,28 @@ class ScorePyramid:
         """The pyramid of ``grid.score`` (max-pooled by ``pool`` cells first: a coarser, cheaper search
         whose optimum the refinement then sharpens), over the grid or the box ``bounds_xy_m``
         ``(xmin, ymin, xmax, ymax)``; cells outside the grid score 0."""
-        score = grid.score
         res = grid.resolution_m
-        if pool > 1:
-            h, w = score.shape
-            hp, wp = -(-h // pool), -(-w // pool)
-            padded = np.zeros((hp * pool, wp * pool), dtype=np.float32)
-            padded[:h, :w] = score
-            score = padded.reshape(hp, pool, wp, pool).max(axis=(1, 3))
-            res = res * pool
         ox, oy = float(grid.origin_xy_m[0]), float(grid.origin_xy_m[1])
-        pad = 1 << depth
+        gh, gw = grid.shape
         if bounds_xy_m is None:
-            c0, r0 = -pad, -pad
-            h, w = score.shape[0] + pad, score.shape[1] + pad
+            r0, c0, h, w = 0, 0, gh, gw
         else:
-            c0 = math.floor((bounds_xy_m[0] - ox) / res) - pad
-            r0 = math.floor((bounds_xy_m[1] - oy) / res) - pad
+            c0 = math.floor((bounds_xy_m[0] - ox) / res)
+            r0 = math.floor((bounds_xy_m[1] - oy) / res)
             w = math.ceil((bounds_xy_m[2] - ox) / res) + 1 - c0
             h = math.ceil((bounds_xy_m[3] - oy) / res) + 1 - r0
-        levels = _score_pyramid(score, r0, c0, h, w, depth)
-        return cls(levels, np.array([ox + c0 * res, oy + r0 * res]), res)
+        h, w = -(-h // pool) * pool, -(-w // pool) * pool
+        score = np.zeros((h, w), dtype=np.float32)  # the box, zero outside the grid
+        ys, xs = max(r0, 0), max(c0, 0)
+        ye, xe = min(r0 + h, gh), min(c0 + w, gw)
+        if ye > ys and xe > xs:
+            score[ys - r0 : ye - r0, xs - c0 : xe - c0] = grid.score[ys:ye, xs:xe]
+        if pool > 1:
+            score = score.reshape(h // pool, pool, w // pool, pool).max(axis=(1, 3))
+        pad = 1 << depth
+        levels = _score_pyramid(score, -pad, -pad, score.shape[0] + pad, score.shape[1] + pad, depth)
+        cres = res * pool
+        return cls(levels, np.array([ox + c0 * res - pad * cres, oy + r0 * res - pad * cres]), cres)
 
 
 def bnb_depth(window_xy_m: float, resolution_m: float) -> int:
@@ -696,6 +697,7 @@ def branch_and_bound_search(
     prior_sigma_xy_m: float | None = None,
     prior_sigma_theta_rad: float | None = None,
     prior_weight: float = 0.0,
+    pool: int = 1,
 ) -> SearchResult:
     """The pose within ``center +- window`` maximising the mean score of the transformed points, found
     exactly by branch and bound over max-pooled score grids (Hess et al., "Real-time loop closure in 2D
@@ -704,7 +706,7 @@ def branch_and_bound_search(
     built for the part the search can reach) or a prebuilt :class:`ScorePyramid` covering that part (a map
     searched many times); translations are searched on its cells. ``min_score`` (mean per point) prunes:
     below it the result's score is 0 and its pose the centre. ``theta_step_rad`` as in
-    :func:`correlative_search`.
+    :func:`correlative_search`. ``pool`` > 1 searches a :class:`PointGrid` at that many times its cells.
 
     With ``prior_weight > 0`` the objective is the mean score minus ``prior_weight / 2`` times the squared
     Mahalanobis distance of the pose from the centre (sigmas ``prior_sigma_xy_m``,
@@ -716,7 +718,8 @@ def branch_and_bound_search(
     n = pts.shape[0]
     if n == 0:
         return SearchResult(c.copy(), 0.0)
-    res = grid.resolution_m
+    pool = 1 if isinstance(grid, ScorePyramid) else max(int(pool), 1)
+    res = grid.resolution_m * pool
     r_max = float(np.max(np.hypot(pts[:, 0], pts[:, 1])))
     if theta_step_rad is None:
         theta_step_rad = float(np.clip(res / max(r_max, 1e-3), math.radians(0.05), math.radians(1.0)))
@@ -728,7 +731,7 @@ def branch_and_bound_search(
         # the part of the grid any transformed point can reach
         reach = r_max + window_xy_m + 2 * res
         box = np.array([c[0] - reach, c[1] - reach, c[0] + reach, c[1] + reach])
-        pyramid = ScorePyramid.of_grid(grid, bnb_depth(window_xy_m, res), bounds_xy_m=box)
+        pyramid = ScorePyramid.of_grid(grid, bnb_depth(window_xy_m, res), pool, box)
     cost_lin = cost_ang = 0.0
     if prior_weight > 0 and prior_sigma_xy_m and prior_sigma_theta_rad:
         cost_lin = 0.5 * prior_weight * n * (res / prior_sigma_xy_m) ** 2

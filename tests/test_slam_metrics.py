@@ -91,3 +91,16 @@ def test_loop_closure_precision_and_recall() -> None:
     assert out["covered_revisits"] == 5 and out["recall"] == pytest.approx(5 / 7)
     none = metrics.loop_closure_scores(ref, path, np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), 10.0)
     assert none["precision"] is None and none["recall"] == 0.0
+
+
+def test_reference_noise_is_the_jitter_of_a_reference_against_a_smooth_odometry() -> None:
+    """A straight drive, the odometry exact, the reference with 1 cm / 0.3 deg of white noise per pose:
+    the estimate recovers that noise (the step differences carry two poses' noise each)."""
+    rng = np.random.default_rng(4)
+    n = 4000
+    odo = np.column_stack([np.arange(n) * 0.05, np.zeros(n), np.zeros(n)])
+    ref = odo + rng.normal(0.0, 1.0, (n, 3)) * [0.01, 0.01, np.radians(0.3)]
+    sxy, sth = metrics.reference_noise_sigma(ref, odo)
+    assert sxy == pytest.approx(0.01, rel=0.1)
+    assert np.degrees(sth) == pytest.approx(0.3, rel=0.1)
+    assert metrics.reference_noise_sigma(odo, odo) == (0.0, 0.0)
