@@ -83,8 +83,9 @@ class OdometryConfig(BaseModel):
     no_wheels_dense_step_m: float = Field(
         0.2,
         ge=0,
-        description="without wheels, after a step this short (and no_wheels_dense_step_rad) the scans are "
-        "dense (10 Hz and more) and the next search uses the compact no_wheels_dense_window_*",
+        description="without wheels, after three steps this short (and no_wheels_dense_step_rad) the scans "
+        "are dense (10 Hz and more) and the next search uses the compact no_wheels_dense_window_* (a sparse "
+        "log's single short step is often a turn on the spot before a large one)",
     )
     no_wheels_dense_step_rad: float = Field(0.2, ge=0, description="... and this small a turn")
     no_wheels_dense_window_m: float = Field(0.6, ge=0, description="compact translational half-window")

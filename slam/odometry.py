@@ -333,6 +333,7 @@ def run_odometry(
     last_inc = np.zeros(3)
     velocity_known = False  # without wheels: last_inc comes from two registered scans
     fallback_run = 0  # consecutive rejected registrations
+    short_steps = 0  # consecutive registered steps within no_wheels_dense_step_*
     restarts = 0
     last_insert: FloatArray | None = None
     chunk = max(1, n // 200)
@@ -364,11 +365,7 @@ def run_odometry(
                     if wheel_inc is None:  # a constant-velocity guess: search wide, prefer the guess
                         window_m = max(cfg.search_window_m, cfg.no_wheels_window_m)
                         window_rad = max(cfg.search_window_rad, cfg.no_wheels_window_rad)
-                        dense = (
-                            velocity_known
-                            and math.hypot(last_inc[0], last_inc[1]) <= cfg.no_wheels_dense_step_m
-                            and abs(last_inc[2]) <= cfg.no_wheels_dense_step_rad
-                        )
+                        dense = velocity_known and short_steps >= 3
                         if dense:  # scans a few centimetres apart: a compact window suffices
                             window_m = min(window_m, cfg.no_wheels_dense_window_m)
                             window_rad = min(window_rad, cfg.no_wheels_dense_window_rad)
@@ -433,6 +430,12 @@ def run_odometry(
                     status[i] = FALLBACK if pts.shape[0] >= cfg.min_points else TOO_FEW_POINTS
                 last_inc = se2.between(poses[i - 1], poses[i])
                 velocity_known = status[i] == MATCHED
+                short = (
+                    velocity_known
+                    and math.hypot(last_inc[0], last_inc[1]) <= cfg.no_wheels_dense_step_m
+                    and abs(last_inc[2]) <= cfg.no_wheels_dense_step_rad
+                )
+                short_steps = short_steps + 1 if short else 0
             else:
                 status[i] = FIRST if pts.shape[0] >= cfg.min_points else TOO_FEW_POINTS
             # a run of rejected registrations means the submap no longer covers the scans (the robot left
