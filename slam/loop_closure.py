@@ -178,7 +178,7 @@ class LoopCloser:
         m = self.cfg.target_keyframes
         scans = self._scans_between(j - m, j + m)
         pts, nrm, origins = self._points_in_frame(int(self.kf[j]), scans, normals=True)
-        keep = voxel_thin(pts, 0.5 * self.odo_cfg.resolution_m)
+        keep = voxel_thin(pts, self.odo_cfg.resolution_m)
         grid = PointGrid.from_points(
             pts[keep],
             nrm[keep],
