@@ -8,6 +8,14 @@ The free training point for a query ``x*`` is the point of a segment closest to 
 segment). The free part of a segment can stop ``free_margin_m`` short of its endpoint so that a query just
 behind a wall is not given a free point lying on the wall's own occupied endpoint.
 
+A beam that meets a surface at a grazing angle gamma (between the beam and the surface) runs within a band of
+half-width delta of that surface for the last delta / sin(gamma) of its length, so a fixed margin lets it free
+the surface it grazes (issue 14). With a band (``grazing_margins_m``: delta(r) = ``band_m`` + r
+``band_per_m``, the beam's spread and range noise) the free part of a return stops max(``free_margin_m``,
+delta(r) / sin(gamma)) short of its endpoint, the grazing term capped at ``max_m`` and never past the beam's
+start. The surface direction at a return is the chord between its neighbouring returns in the same scan; a
+return without both neighbours, or at a depth edge or corner, keeps the plain margin.
+
 For GPPOL (issue 5) each beam keeps what the unscented transform (:mod:`mapping.unscented`) needs: its
 measured range and bearing in the laser frame, the laser's heading, the laser mounting on the base (so that
 the
@@ -34,7 +42,8 @@ class Beams:
     - ``origins_xy_m`` (M, 2): laser position ``P`` at the scan;
     - ``ends_xy_m`` (M, 2): end ``Q`` of the beam: the endpoint of a return, or the end of the free segment
       of a no-return beam;
-    - ``free_ends_xy_m`` (M, 2): end of the free part (for a return, ``Q`` moved ``free_margin_m`` to ``P``);
+    - ``free_ends_xy_m`` (M, 2): end of the free part (for a return, ``Q`` moved ``free_margin_m`` to ``P``,
+      or ``grazing_margin_m`` if larger);
     - ``is_hit`` (M,) bool: the beam has a return (its ``ends_xy_m`` is an occupied point);
     - ``ranges_m`` (M,), ``bearings_rad`` (M,): the measurement in the laser frame (no-return beams carry the
       free length as range);
@@ -42,7 +51,10 @@ class Beams:
       of the beam within its scan; ``source_index`` (M,) int32: sensor of the scan;
     - ``laser_theta_rad`` (M,): heading of the laser at the scan (world frame);
     - ``laser_in_base_xytheta`` (3,): the laser mounting on the base (one for all beams);
-    - ``source_names``: names of the sensors that ``source_index`` points into (e.g. scan topics).
+    - ``source_names``: names of the sensors that ``source_index`` points into (e.g. scan topics);
+    - ``grazing_margin_m`` (M,): the incidence- and range-dependent part of each return's free margin
+      (:func:`grazing_margins_m`; 0 for no-return beams, returns without a surface direction, and when no band
+      is configured; None is read as zeros). ``free_margin_m`` is its floor.
     """
 
     origins_xy_m: FloatArray
@@ -57,6 +69,11 @@ class Beams:
     laser_theta_rad: FloatArray
     laser_in_base_xytheta: FloatArray = field(default_factory=lambda: np.zeros(3))
     source_names: tuple[str, ...] = ("laser",)
+    grazing_margin_m: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        if self.grazing_margin_m is None:
+            object.__setattr__(self, "grazing_margin_m", np.zeros(self.is_hit.shape[0]))
 
     def __len__(self) -> int:
         return int(self.is_hit.shape[0])
@@ -94,13 +111,15 @@ class Beams:
             laser_theta_rad=self.laser_theta_rad[m],
             laser_in_base_xytheta=self.laser_in_base_xytheta,
             source_names=self.source_names,
+            grazing_margin_m=self.grazing_margin_m[m],
         )
 
     def with_free_margin(self, free_margin_m: float) -> Beams:
-        """The same beams with the free part of every return ending ``free_margin_m`` short of its endpoint
-        (no-return beams keep their whole free segment)."""
+        """The same beams with the free part of every return ending ``free_margin_m`` (or its own
+        ``grazing_margin_m`` if larger) short of its endpoint (no-return beams keep their whole free
+        segment)."""
         d = self.ends_xy_m - self.origins_xy_m
-        free_len = free_lengths_m(self.ranges_m, self.is_hit, free_margin_m)
+        free_len = free_lengths_m(self.ranges_m, self.is_hit, free_margin_m, self.grazing_margin_m)
         scale = np.divide(free_len, self.ranges_m, out=np.ones(len(self)), where=self.ranges_m > 0)
         return replace(self, free_ends_xy_m=self.origins_xy_m + scale[:, None] * d)
 
@@ -164,10 +183,71 @@ def compose_laser_poses(poses_xytheta: FloatArray, laser_in_base_xytheta: FloatA
     return out
 
 
-def free_lengths_m(lengths_m: FloatArray, is_hit: NDArray[np.bool_], free_margin_m: float) -> FloatArray:
-    """(M,) length of the free part of (M,) beams: a return's stops ``free_margin_m`` short of its endpoint
-    (never below 0), a no-return beam is free along its whole length."""
-    return np.where(is_hit, np.maximum(lengths_m - free_margin_m, 0.0), lengths_m)
+def free_lengths_m(
+    lengths_m: FloatArray,
+    is_hit: NDArray[np.bool_],
+    free_margin_m: float,
+    grazing_margin_m: FloatArray | None = None,
+) -> FloatArray:
+    """(M,) length of the free part of (M,) beams: a return's stops max(``free_margin_m``,
+    ``grazing_margin_m``) (M,) short of its endpoint (never below 0), a no-return beam is free along its whole
+    length."""
+    margin = free_margin_m if grazing_margin_m is None else np.maximum(free_margin_m, grazing_margin_m)
+    return np.where(is_hit, np.maximum(lengths_m - margin, 0.0), lengths_m)
+
+
+# Depth edges and corners (module docstring): a return's two neighbours give its surface direction only when
+# the steps to them point the same way within this angle and neither is this many times longer than the other.
+TANGENT_MAX_TURN_RAD = float(np.deg2rad(30.0))
+TANGENT_MAX_STEP_RATIO = 3.0
+
+
+def grazing_margins_m(
+    ends_xy_m: FloatArray,
+    directions_xy: FloatArray,
+    lengths_m: FloatArray,
+    is_hit: NDArray[np.bool_],
+    scan_of: NDArray[np.integer],
+    band_m: float,
+    band_per_m: float = 0.0,
+    max_m: float | None = None,
+) -> FloatArray:
+    """(M,) how far short of its endpoint a return's free part must stop not to enter a band of half-width
+    delta(r) = ``band_m`` + r ``band_per_m`` around the surface it hit: delta(r) / sin(gamma), gamma the angle
+    between the beam and the surface, capped at ``max_m`` (None: no cap); 0 where unknown.
+
+    ``ends_xy_m`` (M, 2) endpoints, ``directions_xy`` (M, 2) unit beam directions, ``lengths_m`` (M,) ranges,
+    ``is_hit`` (M,), ``scan_of`` (M,): the beams of every scan in beam order, scans one after another. The
+    surface direction at return i is the chord from return i-1 to return i+1 of the same scan; a return
+    without both neighbours, or whose steps to them turn by more than ``TANGENT_MAX_TURN_RAD`` or differ in
+    length by more than ``TANGENT_MAX_STEP_RATIO`` (a depth edge, a corner, a thin object), gets 0 (the plain
+    margin applies)."""
+    m = lengths_m.shape[0]
+    out = np.zeros(m)
+    if m < 3 or (band_m <= 0 and band_per_m <= 0):
+        return out
+    e = np.asarray(ends_xy_m, np.float64)
+    hit = np.asarray(is_hit, bool)
+    same = scan_of[1:] == scan_of[:-1]
+    # return i (1 <= i <= m-2) with returns of its scan at i-1 and i+1
+    ok = hit[1:-1] & hit[:-2] & hit[2:] & same[:-1] & same[1:]
+    d1 = e[1:-1] - e[:-2]
+    d2 = e[2:] - e[1:-1]
+    l1 = np.hypot(d1[:, 0], d1[:, 1])
+    l2 = np.hypot(d2[:, 0], d2[:, 1])
+    lo, hi = np.minimum(l1, l2), np.maximum(l1, l2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos_turn = np.einsum("ij,ij->i", d1, d2) / (l1 * l2)
+        ok &= (lo > 0) & (hi <= TANGENT_MAX_STEP_RATIO * lo) & (cos_turn >= np.cos(TANGENT_MAX_TURN_RAD))
+        t = e[2:] - e[:-2]
+        u = directions_xy[1:-1]
+        sin_gamma = np.abs(u[:, 0] * t[:, 1] - u[:, 1] * t[:, 0]) / np.hypot(t[:, 0], t[:, 1])
+    delta = band_m + band_per_m * lengths_m[1:-1]
+    grazing = delta / np.maximum(sin_gamma, 1e-12)  # a beam along its surface: no free part (capped below)
+    if max_m is not None:
+        grazing = np.minimum(grazing, max_m)
+    out[1:-1] = np.where(ok, np.minimum(grazing, lengths_m[1:-1]), 0.0)
+    return out
 
 
 def beams_from_scans(
@@ -182,6 +262,9 @@ def beams_from_scans(
     source_index: NDArray | None = None,
     scan_indices: Sequence[int] | NDArray | None = None,
     source_names: Sequence[str] | None = None,
+    free_band_m: float = 0.0,
+    free_band_per_m: float = 0.0,
+    free_margin_max_m: float | None = None,
 ) -> Beams:
     """World-frame beams of N scans.
 
@@ -191,7 +274,9 @@ def beams_from_scans(
     free segment of ``no_return_free_length_m`` (None: the scan's ``range_max``; 0 drops them) and no
     endpoint. ``scan_indices`` (N,) numbers
     the scans (default 0..N-1), e.g. their indices in a longer sequence; ``source_names`` names the sensors
-    ``source_index`` (N,) points into.
+    ``source_index`` (N,) points into. A return's free part stops ``free_margin_m`` short of its endpoint, or
+    more where it grazes a surface (:func:`grazing_margins_m` with ``free_band_m``, ``free_band_per_m``,
+    ``free_margin_max_m``; both bands 0: never more).
     """
     n = len(ranges_m)
     poses = np.asarray(poses_xytheta, dtype=np.float64).reshape(-1, 3)
@@ -218,6 +303,17 @@ def beams_from_scans(
     no_return_len = rmax[scan_of] if nr is None else np.full(r.shape, nr)
     keep = hit | (no_return & (no_return_len > 0))
     length = np.where(hit, r, no_return_len)
+    if free_band_m > 0 or free_band_per_m > 0:
+        # surface directions from the neighbouring returns, before dropped beams close the gaps they leave
+        pose = laser[scan_of]
+        ang = pose[:, 2] + a
+        u = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+        ends = pose[:, :2] + np.where(hit, length, 0.0)[:, None] * u
+        grazing = grazing_margins_m(
+            ends, u, length, hit, scan_of, free_band_m, free_band_per_m, free_margin_max_m
+        )[keep]
+    else:
+        grazing = np.zeros(int(keep.sum()))
     r, a, length, hit, scan_of, beam_of = (
         r[keep],
         a[keep],
@@ -231,7 +327,7 @@ def beams_from_scans(
     u = np.stack([np.cos(ang), np.sin(ang)], axis=1)
     origins = pose[:, :2].copy()
     ends = origins + length[:, None] * u
-    free_len = free_lengths_m(length, hit, free_margin_m)
+    free_len = free_lengths_m(length, hit, free_margin_m, grazing)
     free_ends = origins + free_len[:, None] * u
     return Beams(
         origins_xy_m=origins,
@@ -246,6 +342,7 @@ def beams_from_scans(
         laser_theta_rad=pose[:, 2].copy(),
         laser_in_base_xytheta=mount.copy(),
         source_names=names,
+        grazing_margin_m=grazing,
     )
 
 
@@ -256,6 +353,9 @@ def beams_from_scan_sequence(
     no_return_free_length_m: float | None = None,
     free_margin_m: float = 0.0,
     scan_indices: Sequence[int] | NDArray | None = None,
+    free_band_m: float = 0.0,
+    free_band_per_m: float = 0.0,
+    free_margin_max_m: float | None = None,
 ) -> Beams:
     """:func:`beams_from_scans` for any object with ``ranges_m``, ``angles_rad`` (per-scan lists),
     ``range_min_m``, ``range_max_m`` and ``source_index`` (N,) arrays (e.g. a ``ScanSequence``)."""
@@ -271,6 +371,9 @@ def beams_from_scan_sequence(
         source_index=getattr(scans, "source_index", None),
         scan_indices=scan_indices,
         source_names=getattr(scans, "sources", None),
+        free_band_m=free_band_m,
+        free_band_per_m=free_band_per_m,
+        free_margin_max_m=free_margin_max_m,
     )
 
 

@@ -71,14 +71,41 @@ class MappingConfig(BaseModel):
         "lasers miss glass and dark surfaces, so a short length; a simulated laser can use range_max",
     )
     free_margin_m: float = Field(
-        0.1, ge=0, le=10, description="free segments of returns stop this short of the endpoint"
+        0.1,
+        ge=0,
+        le=10,
+        description="free segments of returns stop this short of the endpoint (the floor of the grazing "
+        "margin below)",
+    )
+    free_band_m: float = Field(
+        0.0,
+        ge=0,
+        le=10,
+        description="half-width delta0 of the band around a surface that a grazing beam's free segment must "
+        "not enter: a return whose beam meets its surface (the chord between its neighbouring returns) at "
+        "angle gamma stops max(free_margin_m, delta(r) / sin(gamma)) short, delta(r) = free_band_m + r "
+        "free_band_per_m (issue 14; 0 and 0: the plain free_margin_m)",
+    )
+    free_band_per_m: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="growth of that band per metre of range (beam spread and range noise, e.g. "
+        "tan(bearing sigma))",
+    )
+    free_margin_max_m: float | None = Field(
+        2.0,
+        gt=0,
+        le=100,
+        description="cap of the grazing margin delta(r) / sin(gamma) (null: none; a beam along its surface "
+        "then frees nothing)",
     )
     train_free_margin_m: float | None = Field(
         None,
         ge=0,
         le=10,
         description="free_margin_m of the training problems only (kernel hyperparameters and PLS link; "
-        "null: free_margin_m). "
+        "null: free_margin_m; the grazing margin of free_band_m applies there too). "
         "With an exact laser, free points right up to the surfaces make eq. (9) prefer short length "
         "scales that shape the local step at a surface rather than the world's structure; training with "
         "a wider margin than the map uses keeps the length scales of that structure",

@@ -95,7 +95,8 @@ def fit_params(
     """Stored parameters if configured, else hyperparameters and PLS link learnt from the first scans for
     ``mapper`` (default ``cfg.mapper``): GPFOL with ``cfg.kernel``; GPPOL with ``cfg.gppol_kernel`` on the
     beams' input Gaussians (pose covariances ``cov_xytheta`` (N, 3, 3) by scan, None: exact poses). The
-    training problems' free segments stop ``cfg.train_free_margin_m`` short of the endpoints if it is set."""
+    training problems' free segments stop ``cfg.train_free_margin_m`` short of the endpoints if it is set (or
+    each beam's grazing margin, kept from ``beams``, if larger)."""
     stored = load_params(cfg)
     if stored is not None:
         return stored
@@ -147,6 +148,9 @@ def make_beams(
         no_return_free_length_m=cfg.no_return_free_length_m,
         free_margin_m=cfg.free_margin_m,
         scan_indices=idx,
+        free_band_m=cfg.free_band_m,
+        free_band_per_m=cfg.free_band_per_m,
+        free_margin_max_m=cfg.free_margin_max_m,
     )
 
 
