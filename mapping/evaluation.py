@@ -120,3 +120,49 @@ def observed_cells(
     from mapping.grid import OccupancyGrid
 
     return np.asarray(OccupancyGrid.build(beams, resolution_m, bounds_xy_m).log_odds != 0)
+
+
+def observed_points(
+    beams: Beams,
+    points_xy_m: FloatArray,
+    resolution_m: float = 0.1,
+    anchor_xy_m: tuple[float, float] | FloatArray | None = None,
+) -> NDArray[np.bool_]:
+    """(P,) bool: which of the (P, 2) ``points_xy_m`` lie in an *observed cell*, a cell of a regular grid of
+    ``resolution_m`` that some beam touched: its free segment (origin to ``free_ends_xy_m``) crosses it or
+    its occupied endpoint lies in it (a free part of length 0 crosses nothing).
+
+    The cells are those of the occupancy-grid baseline (the same compiled ray walk, :mod:`mapping.grid`,
+    with unit weights): a lattice with a corner at ``anchor_xy_m`` (default the baseline's, the beams'
+    lower-left corner less one cell; a ground-truth raster's origin to use its cells), laid over the test
+    points' bounding box only (a beam's cells outside it are never stored)."""
+    from mapping.grid import _integrate
+
+    pts = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+    observed = np.zeros(pts.shape[0], dtype=bool)
+    if pts.shape[0] == 0 or len(beams) == 0:
+        return observed
+    if not np.all(np.isfinite(pts)):
+        raise ValueError("test points must be finite")
+    res = float(resolution_m)
+    if anchor_xy_m is None:
+        anchor = np.asarray(beams.bounds_xy_m(margin_m=res)[:2], dtype=np.float64)
+    else:
+        anchor = np.asarray(anchor_xy_m, dtype=np.float64).reshape(2)
+    first = np.floor((pts.min(axis=0) - anchor) / res)
+    last = np.floor((pts.max(axis=0) - anchor) / res)
+    origin = anchor + first * res
+    nx, ny = (int(v) for v in last - first + 1)
+    counts = np.zeros((ny, nx), dtype=np.float64)
+    grid = (float(origin[0]), float(origin[1]), res, nx, ny)
+    unit = (1.0, 1.0, math.inf)  # l_free, l_occ, l_max: every touch adds one, nothing is clamped
+    free = np.any(beams.free_ends_xy_m != beams.origins_xy_m, axis=1)  # length 0: touches nothing
+    origins = np.ascontiguousarray(beams.origins_xy_m[free], dtype=np.float64)
+    free_ends = np.ascontiguousarray(beams.free_ends_xy_m[free], dtype=np.float64)
+    _integrate(origins, free_ends, np.zeros(origins.shape[0], dtype=bool), *grid, *unit, counts)
+    hits = np.ascontiguousarray(beams.ends_xy_m[beams.is_hit], dtype=np.float64)
+    _integrate(hits, hits, np.ones(hits.shape[0], dtype=bool), *grid, *unit, counts)  # endpoint cells
+    ij = np.floor((pts - origin) / res).astype(np.int64)
+    ij[:, 0] = np.clip(ij[:, 0], 0, nx - 1)  # a rounding at a cell's edge never leaves the lattice
+    ij[:, 1] = np.clip(ij[:, 1], 0, ny - 1)
+    return counts[ij[:, 1], ij[:, 0]] > 0

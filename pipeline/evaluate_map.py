@@ -6,6 +6,11 @@ says otherwise), the hold-out protocol otherwise (blocks of 40 scans held out, o
 400 scans, ``block_scans`` in the output; test points along their beams).
 Maps are built from the input's reference poses; a recording without them is mapped on the optimised
 trajectory of the SLAM stage, whose marginal covariances GPPOL then uses, and the output says so (``poses``).
+Every seed also splits its test points by the cells the mapped beams observed (a free segment crosses the
+cell or an endpoint lies in it; cells of ``mapping.resolution_m``, the raster's own on the ground-truth
+protocol): ``auc_observed_*`` / ``auc_unobserved_*`` (null where a label is missing) and
+``unobserved_share``, with their means ``auc_observed`` and ``unobserved_share``. The test points and the
+other AUCs are those of the protocol, untouched.
 
 Input uncertainty given to GPPOL:
 
@@ -32,7 +37,13 @@ from datasets.errors import DatasetError
 from datasets.types import Recording
 from mapping.beams import Beams, compose_laser_poses
 from mapping.config import MappingConfig, SourceNoiseConfig
-from mapping.evaluation import holdout_block_scans, holdout_split, holdout_test_points, is_carmen_180
+from mapping.evaluation import (
+    holdout_block_scans,
+    holdout_split,
+    holdout_test_points,
+    is_carmen_180,
+    observed_points,
+)
 from mapping.metrics import roc_auc
 from pipeline import mapping_stage as ms
 from pipeline.config import load_config
@@ -111,6 +122,42 @@ def parse_perturbation(text: str | None) -> tuple[float, float] | None:
     return values[0], values[1]
 
 
+def _auc_or_none(scores: np.ndarray, labels: np.ndarray) -> float | None:
+    """ROC AUC, None unless both labels occur."""
+    return roc_auc(scores, labels) if labels.any() and not labels.all() else None
+
+
+def observed_split(
+    beams: Beams,
+    points: np.ndarray,
+    resolution_m: float,
+    anchor_xy_m: tuple[float, float] | np.ndarray | None = None,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """(P,) bool: which of the (P, 2) test points lie in a cell the mapped ``beams`` observed
+    (:func:`mapping.evaluation.observed_points`: cells of ``resolution_m``, lattice corner ``anchor_xy_m``),
+    and the row entries saying so: ``observed_test_points``, ``unobserved_share``, ``observed_cell_m``,
+    ``observed_s``."""
+    t0 = time.perf_counter()
+    observed = observed_points(beams, points, resolution_m, anchor_xy_m)
+    seconds = time.perf_counter() - t0
+    n = int(observed.size)
+    return observed, {
+        "observed_test_points": int(observed.sum()),
+        "unobserved_share": float(np.sum(~observed) / n) if n else None,
+        "observed_cell_m": float(resolution_m),
+        "observed_s": seconds,
+    }
+
+
+def _split_aucs(p: np.ndarray, labels: np.ndarray, observed: np.ndarray, name: str) -> dict[str, Any]:
+    """``auc_observed_NAME`` and ``auc_unobserved_NAME``: AUC of the (P,) scores ``p`` over the test points
+    in observed / unobserved cells (None where one label is missing there)."""
+    return {
+        f"auc_observed_{name}": _auc_or_none(p[observed], labels[observed]),
+        f"auc_unobserved_{name}": _auc_or_none(p[~observed], labels[~observed]),
+    }
+
+
 def _map_and_score(
     beams: Beams,
     cov: np.ndarray | None,
@@ -120,9 +167,13 @@ def _map_and_score(
     seed_offset: int,
     grid_bounds: ms.Bounds | None,
     sort: bool,
+    observed: np.ndarray | None = None,
 ) -> dict[str, Any]:
-    """Train and query GPPOL and GPFOL, build the grid, score the three; times and parameters."""
+    """Train and query GPPOL and GPFOL, build the grid, score the three; times and parameters. With
+    ``observed`` (P,) bool (:func:`observed_split`), also each AUC over the test points in observed and in
+    unobserved cells (:func:`_split_aucs`), after the other keys."""
     row: dict[str, Any] = {}
+    split: dict[str, Any] = {}
     for mapper in ms.MAPPERS:
         t0 = time.perf_counter()
         params = ms.fit_params(beams, cfg, seed_offset, mapper=mapper, cov_xytheta=cov)
@@ -131,6 +182,8 @@ def _map_and_score(
         p = gp.query(points, sort=sort).probability
         t2 = time.perf_counter()
         row[f"auc_{mapper}"] = roc_auc(p, labels)
+        if observed is not None:
+            split.update(_split_aucs(p, labels, observed, mapper))
         row[f"{mapper}_train_s"] = t1 - t0
         row[f"{mapper}_map_and_query_s"] = t2 - t1
         row[f"{mapper}_hyperparameters"] = {"kernel": params.kernel.name, **params.kernel.as_dict()}
@@ -139,7 +192,25 @@ def _map_and_score(
     p_grid = ms.build_grid(beams, cfg, grid_bounds).query(points)
     row["auc_grid"] = roc_auc(p_grid, labels)
     row["grid_s"] = time.perf_counter() - t0
+    if observed is not None:
+        split.update(_split_aucs(p_grid, labels, observed, "grid"))
+    row.update(split)
     return row
+
+
+def observed_means(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Means over the per-seed ``rows`` of :func:`observed_split` / :func:`_split_aucs`: ``auc_observed``
+    {gppol, gpfol, grid} (over the seeds where it is defined; None where it never is) and
+    ``unobserved_share``."""
+
+    def mean(key: str) -> float | None:
+        values = [r[key] for r in rows if r.get(key) is not None]
+        return float(np.mean(values)) if values else None
+
+    return {
+        "auc_observed": {k: mean(f"auc_observed_{k}") for k in ("gppol", "gpfol", "grid")},
+        "unobserved_share": mean("unobserved_share"),
+    }
 
 
 def evaluate_holdout(
@@ -198,7 +269,9 @@ def evaluate_holdout(
                 "test_points": int(labels.size),
                 "occupied_test_points": int(labels.sum()),
             }
-            row.update(_map_and_score(beams, seed_cov, cfg, pts, labels, seed, None, sort=True))
+            observed, split = observed_split(beams, pts, cfg.resolution_m)
+            row.update(_map_and_score(beams, seed_cov, cfg, pts, labels, seed, None, True, observed))
+            row.update(split)
             per_seed.append(row)
             bar.advance()
     return {"per_seed": per_seed, "block_scans": block}
@@ -241,10 +314,16 @@ def evaluate_ground_truth(
     with progress.stage("evaluate map", total=1) as bar:
         beams = make_beams(rec, poses, np.arange(len(rec.scans)), cfg)
         row = {"seed": None, "test_points": int(labels.size), "occupied_test_points": int(labels.sum())}
-        row.update(_map_and_score(beams, cov, cfg, centres, labels, 0, bounds, sort=False))
+        observed, split = observed_split(beams, centres, float(gt.resolution_m), gt.origin_xy_m)
+        row.update(_map_and_score(beams, cov, cfg, centres, labels, 0, bounds, False, observed))
+        row.update(split)
         bar.advance()
     noise = {name: s.model_dump() for name, s in cfg.sources.items()}
     return {"per_seed": [row], "sensor_noise": noise, "sensor_noise_from": str(gt_path)}
+
+
+def _percent(share: float | None) -> str:
+    return "-" if share is None else f"{100 * share:.1f} %"
 
 
 def evaluate_map(
@@ -256,7 +335,8 @@ def evaluate_map(
     scan_topic: str | None = None,
 ) -> dict[str, Any]:
     """Evaluate the mappers on ``input_path``; returns the SPEC section 3 keys (``protocol``, ``seeds``,
-    ``auc``: {gppol, gpfol, grid} as means over seeds) plus ``per_seed`` details and a ``table``.
+    ``auc``: {gppol, gpfol, grid} as means over seeds) plus ``per_seed`` details, the means of
+    :func:`observed_means` (``auc_observed``, ``unobserved_share``) and a ``table``.
 
     ``perturb_poses``: ``(sigma_xy_m, sigma_theta_rad)`` or its text form (module docstring)."""
     from datasets.registry import open_dataset
@@ -306,6 +386,11 @@ def evaluate_map(
         table[f"AUC gppol / gpfol / grid{tag}"] = (
             f"{r['auc_gppol']:.4f} / {r['auc_gpfol']:.4f} / {r['auc_grid']:.4f}"
         )
+    seen = observed_means(rows)
+    table["AUC observed cells gppol / gpfol / grid"] = " / ".join(
+        "-" if v is None else f"{v:.4f}" for v in seen["auc_observed"].values()
+    )
+    table["test points in unobserved cells"] = _percent(seen["unobserved_share"])
     result = {
         "protocol": protocol,
         "seeds": used_seeds,
@@ -314,6 +399,7 @@ def evaluate_map(
         "poses": pose_source,
         "perturb_poses": None if perturb_poses is None else list(perturb_poses),
         "gppol_pose_covariance": pose_cov,
+        **seen,
         "per_seed": rows,
         "table": table,
     }

@@ -22,7 +22,9 @@ Per recording (:func:`run_entry`):
   nothing of the recording's duration) and the loop-search time with its share of the SLAM wall time.
 - Maps, where the reference has at least 100 scans: the hold-out protocol on the reference poses (exactly
   ``evaluate map``) and on our own SLAM's poses after loop closure (SPEC section 6, "Maps from our own
-  SLAM", :func:`evaluate_slam_poses`), blocks of 40 scans or of 10 under 400 scans (``block_scans``).
+  SLAM", :func:`evaluate_slam_poses`), blocks of 40 scans or of 10 under 400 scans (``block_scans``);
+  each with its split by the cells the mapped beams observed (``auc_observed``, ``unobserved_share`` and
+  per seed, :func:`pipeline.evaluate_map.observed_split`).
   Simulated worlds with a ground-truth raster (``INPUT.gt.npz``): the ground-truth protocol on the true
   poses and on ours.
 
@@ -58,6 +60,7 @@ from pipeline.evaluate_map import (
     DEFAULT_SEEDS,
     evaluate_ground_truth,
     evaluate_holdout,
+    observed_means,
     reference_base_poses,
 )
 from pipeline.evaluate_slam import match_reference_counted, slam_and_score
@@ -334,6 +337,7 @@ def _map_result(out: dict[str, Any], protocol: str, seeds: list[int], poses: str
         "protocol": protocol,
         "seeds": list(seeds) if protocol == "holdout" else [],
         "auc": {k: float(np.mean([r[f"auc_{k}"] for r in rows])) for k in ("gppol", "gpfol", "grid")},
+        **observed_means(rows),
         "poses": poses,
         "gppol_pose_covariance": pose_cov,
     }
@@ -567,11 +571,21 @@ def _aucs(result: dict[str, Any] | None) -> str:
     return " / ".join(f"{auc[k]:.4f}" for k in ("gppol", "gpfol", "grid"))
 
 
+def _observed(result: dict[str, Any] | None) -> str:
+    """GPPOL's AUC over the test points in observed cells / the share of test points in unobserved ones."""
+    if not result or result.get("unobserved_share") is None:
+        return "-"
+    auc = result["auc_observed"]["gppol"]
+    return f"{'-' if auc is None else format(auc, '.4f')} / {100 * result['unobserved_share']:.1f} %"
+
+
 TABLE_LEGEND = (
     "scans: of the input (matched to the reference); ATE (m), NEES (3 if consistent): before / after loop "
     "closure; consecutive: error between consecutive reference scans after loop closure, m / deg; closures: "
     "accepted / rejected; x RT: real-time factor of the SLAM stage; loop search: its time and share of the "
-    "SLAM time; AUC (mean over the seeds): GPPOL / GPFOL / grid, maps on the reference poses and on ours"
+    "SLAM time; AUC (mean over the seeds): GPPOL / GPFOL / grid, maps on the reference poses and on ours; "
+    "observed: maps on the reference poses, GPPOL's AUC over the test points in cells the mapped beams "
+    "observed / the share of test points in cells they did not"
 )
 
 
@@ -599,6 +613,7 @@ def table_row(row: dict[str, Any]) -> dict[str, str]:
     maps = row.get("maps") or {}
     cells["AUC ref. poses"] = _aucs(maps.get("reference_poses"))
     cells["AUC SLAM poses"] = _aucs(maps.get("slam_poses"))
+    cells["AUC observed GPPOL / unobserved"] = _observed(maps.get("reference_poses"))
     notes = list(row.get("notes") or [])
     if row.get("skipped"):
         notes.insert(0, f"skipped: {row['skipped']}")
