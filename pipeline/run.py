@@ -263,8 +263,11 @@ def make_summary(
     metrics: dict[str, Any],
     timer: StageTimer,
 ) -> dict[str, Any]:
-    """``summary.json``: counts, timings, loop closures, metrics, map geometry, and a ``table``."""
+    """``summary.json``: counts, timings, loop closures, metrics, map geometry, how the reader recognised
+    no-return readings (``no_return``: the reader's ``meta["no_return"]``, None if it says nothing), and a
+    ``table``."""
     timings = dict(timer.seconds)
+    no_return = rec.meta.get("no_return") if isinstance(rec.meta, dict) else None
     timings["total"] = timer.total()
     data_s = (rec.scans.stamps_ns[-1] - rec.scans.stamps_ns[0]) / 1e9
     s = slam.summary()
@@ -286,6 +289,7 @@ def make_summary(
         "map": (
             f"{after.shape[1]} x {after.shape[0]} cells at {after.resolution_m} m ({config.mapping.mapper})"
         ),
+        "no-return readings": _no_return_text(no_return),
     }
     for name, sec in timings.items():
         table[f"wall time {name} (s)"] = round(sec, 2)
@@ -293,6 +297,7 @@ def make_summary(
     return {
         "input": str(input_path),
         "format": rec.format,
+        "no_return": no_return,
         "mapper": config.mapping.mapper,
         "counts": {
             "scans": s["scans"],
@@ -318,6 +323,13 @@ def make_summary(
         "realtime_factor": data_s / timings["total"] if timings["total"] > 0 else None,
         "table": table,
     }
+
+
+def _no_return_text(no_return: Any) -> str:
+    """The summary table's cell for a reader's ``meta["no_return"]``."""
+    if isinstance(no_return, dict) and "range_m" in no_return:
+        return f">= {no_return['range_m']:.2f} m ({no_return.get('rule', '?')})"
+    return "-" if no_return is None else str(no_return)
 
 
 def run_demo(

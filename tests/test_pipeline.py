@@ -260,6 +260,7 @@ def test_run_on_scans_only_bag(tmp_path) -> None:
     assert res.returncode == 0, res.stderr
     summary = check_run_folder(out)
     assert summary["counts"]["scans"] == 360
+    assert summary["no_return"]["range_m"] > 0 and "range_max" in summary["no_return"]["rule"]
     after = read_layers_npz(out / "maps/after/layers.npz")
     # a real map: confidently free and confidently occupied cells both exist
     assert (after.probability < 0.35).mean() > 0.05 and (after.probability > 0.65).mean() > 0.005

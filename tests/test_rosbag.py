@@ -290,6 +290,11 @@ def test_inf_and_nan_ranges_are_no_returns_and_accepted(tmp_path: Path, name: st
     assert len(back.scans) == 2
     assert back.scans[0].hit_mask().tolist() == [True, False, False, False]
     assert np.isposinf(back.scans[0].ranges_m[1]) and np.isnan(back.scans[0].ranges_m[2])
+    # a reading at the declared range_max (10 m) is no return either, and the meta says which rule
+    path = _scan_bag(tmp_path / ("c" + name), [(T0, [1.0, 10.0, 9.99]), (T0 + 1, [2.0, 2.0, 2.0])])
+    back = open_dataset(path)
+    assert back.scans[0].hit_mask().tolist() == [True, False, True]
+    assert back.meta["no_return"]["range_m"] == 10.0 and "range_max" in back.meta["no_return"]["rule"]
 
 
 @pytest.mark.parametrize("name", ["b.bag", "b.mcap"])

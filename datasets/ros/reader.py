@@ -25,7 +25,9 @@ is a :class:`~datasets.errors.TopicError` that lists its topics.
 
 Bad input (SPEC section 8) raises one line naming the file: negative ranges, empty scans and header stamps
 going backwards within a topic name the topic and the message. ``inf`` and ``NaN`` ranges are accepted:
-REP 117 uses them for "no return" (and ``-inf`` for "too close").
+REP 117 uses them for "no return" (and ``-inf`` for "too close"); a reading at or beyond the message's
+``range_max`` is none either. ``meta["no_return"]`` says so (``rule``, ``range_m``: the largest declared
+``range_max``), as the CARMEN reader's does.
 """
 
 from __future__ import annotations
@@ -182,6 +184,8 @@ class _BagReading:
             scans, clouds = self._read_clouds(topics[0])
         else:
             scans = self._read_scans(topics)
+        if scans is not None:
+            meta["no_return"] = self._no_return(scans, clouds is not None)
         multi = len(topics) > 1
         namespaces = [namespace_of(t) for t in topics]
 
@@ -240,6 +244,14 @@ class _BagReading:
             clouds=clouds,
             meta=meta,
         )
+
+    def _no_return(self, scans: ScanSequence, from_clouds: bool) -> dict:
+        """``meta["no_return"]``: how no-return readings are recognised (as the CARMEN reader says it)."""
+        if from_clouds:
+            rule = "input.cloud_range_max_m (a cloud's bearings without a point are +inf: no return)"
+        else:
+            rule = "the LaserScan's declared range_max (REP 117: +inf is no return)"
+        return {"rule": rule, "range_m": float(np.max(scans.range_max_m))}
 
     # -- streams --------------------------------------------------------------------------------------
 
