@@ -136,6 +136,18 @@ class MappingConfig(BaseModel):
     )
     train_lbfgs_iterations: int = Field(100, ge=1, le=100_000, description="L-BFGS-B iterations after it")
     train_seed: int = Field(0, ge=0, description="seed of the training subsample and of the annealer")
+    pls_link: Literal["loo", "holdout"] = Field(
+        "loo",
+        description="how the PLS link (alpha, beta) is fitted: 'loo' on the training problems' leave-one-out "
+        "predictions (eqs. 11-12), 'holdout' on predictions along held-out scans' beams of a map of the "
+        "rest (mapping.calibration: the level of space the data never reached is learnt, not implied)",
+    )
+    pls_holdout_fraction: float = Field(
+        0.1, gt=0, lt=1, description="share of the mapped scans held out for pls_link 'holdout'"
+    )
+    pls_holdout_block_scans: int = Field(
+        10, ge=1, le=10_000, description="consecutive scans per held-out block of pls_link 'holdout'"
+    )
     grid: GridBaselineConfig = Field(default_factory=GridBaselineConfig)
 
     # --- GPPOL (issue 5): training inputs are Gaussians (paper section 3.6) -----------------------------

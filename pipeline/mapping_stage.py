@@ -5,6 +5,7 @@ Shared by ``run``, ``remap`` and ``evaluate map``; the algorithms live in :mod:`
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ from numpy.typing import NDArray
 from datasets.errors import ConfigError
 from datasets.types import ScanSequence
 from mapping.beams import Beams, beams_from_scan_sequence
+from mapping.calibration import holdout_link, unseen_probability
 from mapping.config import MappingConfig
 from mapping.gpmap import GPOccupancyMap
 from mapping.gppol import GaussianInputs, SensorNoise, input_moments
@@ -100,6 +102,51 @@ def fit_params(
     stored = load_params(cfg)
     if stored is not None:
         return stored
+    params = _train_params(beams, cfg, seed_offset, mapper, cov_xytheta)
+    if cfg.pls_link == "holdout":
+        params = _holdout_link(params, beams, cfg, seed_offset, mapper, cov_xytheta)
+    # p(occ) where no data reach (mu = 0, the prior variance): the level of unseen space, in the metadata
+    prior_var = float(params.kernel.diag(np.zeros((1, 2)))[0])
+    info = {**params.info, "unseen_probability": unseen_probability(params.alpha, params.beta, prior_var)}
+    return replace(params, info=info)
+
+
+def _holdout_link(
+    params: GPParams,
+    beams: Beams,
+    cfg: MappingConfig,
+    seed_offset: int,
+    mapper: str | None,
+    cov_xytheta: NDArray | None,
+) -> GPParams:
+    """``params`` with the PLS link refitted on held-out scans of ``beams`` (``pls_link: holdout``,
+    :func:`mapping.calibration.holdout_link`); unchanged when too few scans (``params.info["pls"]`` says which
+    fit holds)."""
+
+    def build(rest: Beams) -> GPOccupancyMap:
+        return build_gp_map(rest, params, cfg, cov_xytheta, mapper)
+
+    fitted = holdout_link(
+        beams, build, cfg.pls_holdout_fraction, cfg.pls_holdout_block_scans, cfg.train_seed + seed_offset
+    )
+    info = dict(params.info)
+    loo = {"alpha": params.alpha, "beta": params.beta}
+    if fitted is None:
+        info["pls"] = {"fit": "loo (too few scans to hold out)", "loo": loo}
+        return replace(params, info=info)
+    alpha, beta, used = fitted
+    info["pls"] = {"fit": "holdout", "loo": loo, **used}
+    return replace(params, alpha=alpha, beta=beta, info=info)
+
+
+def _train_params(
+    beams: Beams,
+    cfg: MappingConfig,
+    seed_offset: int,
+    mapper: str | None,
+    cov_xytheta: NDArray | None,
+) -> GPParams:
+    """Hyperparameters and the leave-one-out PLS link learnt by :func:`mapping.train.train_gp`."""
     gppol = (mapper or cfg.mapper) == "gppol"
     kernel_name = cfg.gppol_kernel if gppol else cfg.kernel
     names = KERNELS[kernel_name].names

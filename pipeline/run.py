@@ -315,6 +315,8 @@ def make_summary(
             "origin_xy_m": list(after.origin_xy_m),
             "shape_hw": list(after.shape),
             "bounds_xy_m": list(bounds),
+            # p(occ) the link gives where no data reach (mu = 0, prior variance): unobserved cells read so
+            "unseen_probability": params.info.get("unseen_probability"),
         },
         "params": params.to_dict(),
         "slam": s,

@@ -110,6 +110,7 @@ def check_run_folder(out: Path) -> dict:
 def test_loop_run_folder_is_complete(loop_run) -> None:
     summary = check_run_folder(loop_run)
     assert summary["counts"]["scans"] == 614 and summary["mapper"] == "gppol"
+    assert 0 < summary["map"]["unseen_probability"] < 1
     assert summary["counts"]["loop_closures"] >= 1
     ate = summary["metrics"]["ate_rmse_m"]
     assert ate["after"] < 0.05 and ate["after"] <= ate["before"]
