@@ -87,7 +87,8 @@ def beam_test_points(
 
 
 def unseen_probability(alpha: float, beta: float, prior_var: float) -> float:
-    """p(occ) of a query no data constrain (``mu = 0``, ``var``: the kernel's prior variance), by the link."""
+    """p(occ) of a query no data constrain (``mu = 0``, ``prior_var``: the kernel's prior variance plus the
+    noise variance, as mapping.core's link adds it), by the link."""
     return float(special.ndtr(beta / np.sqrt(1.0 + alpha**2 * prior_var)))
 
 

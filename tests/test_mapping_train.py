@@ -114,7 +114,7 @@ def test_training_uses_train_free_margin_and_the_map_keeps_its_own() -> None:
     from pipeline.config import MappingConfig
     from pipeline.mapping_stage import fit_params
 
-    budget = {"train_scans": 10, "train_problems": 12, "train_anneal_evaluations": 20}
+    budget = {"train_scans": 10, "train_problems": 12, "train_anneal_evaluations": 20, "pls_link": "loo"}
     budget["train_lbfgs_iterations"] = 10
     narrow = random_beams(8, n_scans=20)  # free segments stop 0.1 m short
     wide = narrow.with_free_margin(0.6)
