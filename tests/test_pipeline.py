@@ -237,12 +237,15 @@ def test_interrupted_run_leaves_no_complete_folder(loop_bag, tmp_path) -> None:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        # a test session started in the background of a non-interactive shell ignores SIGINT, and so would
+        # the run it starts: give the run Ctrl-C's default disposition, as a terminal would
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     deadline = time.monotonic() + 300
     while not list(tmp_path.glob("run.partial-*")) and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.05)
     assert list(tmp_path.glob("run.partial-*")), "the run never started writing"
-    time.sleep(0.1)  # inside the staged block; later, a warm cache may finish the maps first
+    time.sleep(0.5)
     proc.send_signal(signal.SIGINT)
     _, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 130, stderr
