@@ -255,22 +255,7 @@ class LoopCloser:
         grid = self.target_grid(j)
 
         def reject(reason: str, pose=pred, score=0.0, fit=0.0, rms=math.inf, d2=math.nan) -> LoopClosure:
-            return LoopClosure(
-                k,
-                j,
-                int(self.kf[k]),
-                int(self.kf[j]),
-                pose,
-                np.zeros((3, 3)),
-                score,
-                fit,
-                rms,
-                d2,
-                False,
-                reason,
-                win_xy,
-                win_th,
-            )
+            return self._rejected(k, j, reason, pose, score, fit, rms, d2, win_xy, win_th)
 
         if pts.shape[0] < self.odo_cfg.min_points or len(grid) < self.odo_cfg.min_points:
             return reject("too few points")
@@ -320,6 +305,38 @@ class LoopCloser:
             0.0,
         )
 
+    def _rejected(
+        self,
+        k: int,
+        j: int,
+        reason: str,
+        pose: FloatArray,
+        score: float,
+        fit: float,
+        rms: float,
+        d2: float,
+        win_xy: float,
+        win_th: float,
+    ) -> LoopClosure:
+        """A rejected attempt of keyframe ``k`` against target ``j`` (no information: never added)."""
+        kf = self.kf
+        return LoopClosure(
+            k,
+            j,
+            int(kf[k]),
+            int(kf[j]),
+            pose,
+            np.zeros((3, 3)),
+            score,
+            fit,
+            rms,
+            d2,
+            False,
+            reason,
+            win_xy,
+            win_th,
+        )
+
     def _verify(
         self,
         k: int,
@@ -338,22 +355,7 @@ class LoopCloser:
         found = SearchResult(start, score)
 
         def reject(reason: str, pose=pred, score=0.0, fit=0.0, rms=math.inf, d2=math.nan) -> LoopClosure:
-            return LoopClosure(
-                k,
-                j,
-                int(self.kf[k]),
-                int(self.kf[j]),
-                pose,
-                np.zeros((3, 3)),
-                score,
-                fit,
-                rms,
-                d2,
-                False,
-                reason,
-                win_xy,
-                win_th,
-            )
+            return self._rejected(k, j, reason, pose, score, fit, rms, d2, win_xy, win_th)
 
         al = refine_point_to_line(
             grid,

@@ -214,6 +214,21 @@ def run_slam(
     accepted: list[LoopClosure] = []
     rejected: list[LoopClosure] = []
     scale = 1.0  # running a-posteriori variance factor
+
+    def add_loop(c: LoopClosure) -> None:
+        """An accepted closure as a robust factor, its kernel width grown with the current variance factor."""
+        width = lc.robust_kernel_width * math.sqrt(max(scale, 1.0))
+        cov = np.linalg.inv(c.information)
+        graph.add_between(
+            "loop",
+            c.target_keyframe,
+            c.query_keyframe,
+            c.relative_xytheta,
+            cov,
+            robust=lc.robust_kernel,
+            robust_width=width,
+        )
+
     last_closure_path_m = -math.inf
     last_search_path_m = -math.inf
     with stage(progress, "loop closure", k_count) as bar:
@@ -243,15 +258,7 @@ def run_slam(
                         break
                 t_search += time.perf_counter() - ts
                 for closure in found:
-                    graph.add_between(
-                        "loop",
-                        closure.target_keyframe,
-                        closure.query_keyframe,
-                        closure.relative_xytheta,
-                        np.linalg.inv(closure.information),
-                        robust=lc.robust_kernel,
-                        robust_width=lc.robust_kernel_width * math.sqrt(max(scale, 1.0)),
-                    )
+                    add_loop(closure)
                 if found:
                     last_closure_path_m = closer.path_m[kf[k]]
                     accepted.extend(found)
@@ -278,15 +285,7 @@ def run_slam(
                 if c.accepted:
                     dense.append(c)
         for c in dense:
-            graph.add_between(
-                "loop",
-                c.target_keyframe,
-                c.query_keyframe,
-                c.relative_xytheta,
-                np.linalg.inv(c.information),
-                robust=lc.robust_kernel,
-                robust_width=lc.robust_kernel_width * math.sqrt(max(scale, 1.0)),
-            )
+            add_loop(c)
         accepted.extend(dense)
         graph.update(extra_iterations=1)
     timings["dense_pass_s"] = time.perf_counter() - t0
