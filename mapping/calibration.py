@@ -13,7 +13,7 @@ var`` along the held-out beams (their endpoints occupied, points along their fre
 :func:`beam_test_points`, the labels of the hold-out protocol of SPEC section 6); alpha and beta maximise the
 likelihood of those labels (:func:`mapping.pls.fit_pls`). Held-out beams reach space the rest never saw as
 often as a new scan does, so far, high-variance queries take part in the fit in their real proportion, and
-the level the map gives unseen space (:func:`unseen_probability`) is the one the data support.
+the level the map gives unseen space (``GPParams.unseen_probability``) is the one the data support.
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import special
 
 from mapping.beams import Beams
 from mapping.pls import fit_pls
@@ -84,12 +83,6 @@ def beam_test_points(
         keep = np.sort(rng.choice(points.shape[0], max_points, replace=False))
         points, labels = points[keep], labels[keep]
     return points, labels
-
-
-def unseen_probability(alpha: float, beta: float, prior_var: float) -> float:
-    """p(occ) of a query no data constrain (``mu = 0``, ``prior_var``: the kernel's prior variance plus the
-    noise variance, as mapping.core's link adds it), by the link."""
-    return float(special.ndtr(beta / np.sqrt(1.0 + alpha**2 * prior_var)))
 
 
 def holdout_link(

@@ -32,7 +32,7 @@ from mapping.gppol import GaussianInputs
 from mapping.kernels import Kernel, make_kernel
 from mapping.neighbours import BeamIndex
 from mapping.noisy_kernels import InputExpectation
-from mapping.pls import fit_pls, loo_predictions
+from mapping.pls import fit_pls, loo_predictions, pls_probability
 
 FloatArray = NDArray[np.float64]
 PARAMS_FORMAT = "gpom-gp-params-1"
@@ -52,7 +52,15 @@ class GPParams:
     beta: float
     info: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def unseen_probability(self) -> float:
+        """p(occ) where no data reach: the link at mu = 0 and the prior variance k(x, x) plus the noise, as
+        mapping.core answers a query without neighbours (the level unobserved space reads as)."""
+        prior_var = float(self.kernel.diag(np.zeros((1, 2)))[0]) + self.noise_var
+        return float(pls_probability(0.0, prior_var, self.alpha, self.beta))
+
     def to_dict(self) -> dict[str, Any]:
+        """The parameter file's content; ``unseen_probability`` is derived (not read back)."""
         return {
             "format": PARAMS_FORMAT,
             "kernel": self.kernel.name,
@@ -60,6 +68,7 @@ class GPParams:
             "bounds": {k: list(b) for k, b in zip(self.kernel.names, self.kernel.bounds_values, strict=True)},
             "noise_var": self.noise_var,
             "pls": {"alpha": self.alpha, "beta": self.beta},
+            "unseen_probability": self.unseen_probability,
             "info": self.info,
         }
 

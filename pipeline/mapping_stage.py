@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from datasets.errors import ConfigError
 from datasets.types import ScanSequence
 from mapping.beams import Beams, beams_from_scan_sequence
-from mapping.calibration import holdout_link, unseen_probability
+from mapping.calibration import holdout_link
 from mapping.config import MappingConfig
 from mapping.gpmap import GPOccupancyMap
 from mapping.gppol import GaussianInputs, SensorNoise, input_moments
@@ -105,11 +105,7 @@ def fit_params(
     params = _train_params(beams, cfg, seed_offset, mapper, cov_xytheta)
     if cfg.pls_link == "holdout":
         params = _holdout_link(params, beams, cfg, seed_offset, mapper, cov_xytheta)
-    # p(occ) where no data reach (mu = 0, the prior variance and the noise: mapping.core's empty query), the
-    # level of unseen space, in the metadata
-    prior_var = float(params.kernel.diag(np.zeros((1, 2)))[0]) + params.noise_var
-    info = {**params.info, "unseen_probability": unseen_probability(params.alpha, params.beta, prior_var)}
-    return replace(params, info=info)
+    return params
 
 
 def _holdout_link(

@@ -316,7 +316,7 @@ def make_summary(
             "shape_hw": list(after.shape),
             "bounds_xy_m": list(bounds),
             # p(occ) the link gives where no data reach (mu = 0, prior variance): unobserved cells read so
-            "unseen_probability": params.info.get("unseen_probability"),
+            "unseen_probability": params.unseen_probability,
         },
         "params": params.to_dict(),
         "slam": s,

@@ -11,8 +11,10 @@ from scipy import special
 
 from datasets import open_dataset
 from mapping.beams import beams_from_scans
-from mapping.calibration import beam_test_points, holdout_link, inner_holdout, unseen_probability
+from mapping.calibration import beam_test_points, holdout_link, inner_holdout
 from mapping.config import MappingConfig
+from mapping.kernels import make_kernel
+from mapping.train import GPParams
 from pipeline.mapping_stage import build_gp_map, fit_params, make_beams
 from tests.conftest import data_file
 
@@ -47,8 +49,11 @@ def test_beam_test_points_label_ends_and_free_segments() -> None:
 
 
 def test_unseen_probability_is_the_link_at_the_prior() -> None:
-    assert unseen_probability(3.0, 0.0, 2.0) == pytest.approx(0.5)
-    assert unseen_probability(2.0, -1.0, 0.5) == pytest.approx(special.ndtr(-1.0 / np.sqrt(1 + 4 * 0.5)))
+    se = make_kernel("se", {"sigma_f": 0.5, "length_scale": 0.3})  # k(x, x) = 0.25
+    assert GPParams(se, 0.25, 3.0, 0.0).unseen_probability == pytest.approx(0.5)
+    p = GPParams(se, 0.25, 2.0, -1.0).unseen_probability
+    assert p == pytest.approx(special.ndtr(-1.0 / np.sqrt(1 + 4 * (0.25 + 0.25))))
+    assert GPParams(se, 0.25, 2.0, -1.0).to_dict()["unseen_probability"] == p
 
 
 @dataclass
@@ -115,7 +120,7 @@ def test_holdout_link_predicts_unseen_scans_better_than_loo_on_a_real_log() -> N
     assert loo.kernel.as_dict() == hold.kernel.as_dict()  # the same hyperparameters, another link
     assert hold.info["pls"]["fit"] == "holdout" and hold.info["pls"]["held_out_scans"] == 20
     assert hold.info["pls"]["loo"] == {"alpha": loo.alpha, "beta": loo.beta}
-    assert 0 < hold.info["unseen_probability"] < 1 and 0 < loo.info["unseen_probability"] < 1
+    assert 0 < hold.unseen_probability < 1 and 0 < loo.unseen_probability < 1
     pts, y = beam_test_points(test, seed=3)
     pred = build_gp_map(train, loo, loo_cfg).query(pts)
     ll_loo = _log_lik(loo.alpha, loo.beta, pred.mean, pred.variance, y)
