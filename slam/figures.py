@@ -79,7 +79,7 @@ def _main(out_dir: Path) -> None:  # pragma: no cover - figure regeneration
     from datasets.registry import open_dataset
     from datasets.simulation import make_world
     from slam.config import SlamConfig
-    from slam.odometry import scan_points_base
+    from slam.odometry import scans_points_base
     from slam.system import run_slam
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -91,18 +91,7 @@ def _main(out_dir: Path) -> None:  # pragma: no cover - figure regeneration
     idx = match_scans(gfs, raw)
     res = run_slam(raw.scans, raw.scan_poses, raw.laser_in_base_xytheta, cfg)
     sc = raw.scans
-    pts = [
-        scan_points_base(
-            sc.ranges_m[i],
-            sc.angles_rad[i],
-            sc.range_min_m[i],
-            sc.range_max_m[i],
-            raw.laser_in_base_xytheta,
-            oc.min_range_m,
-            oc.max_range_m,
-        )
-        for i in range(len(sc))
-    ]
+    pts = scans_points_base(sc, raw.laser_in_base_xytheta, oc)
     plot_before_after(
         out_dir / "intel_before_after.png",
         res,
@@ -114,18 +103,7 @@ def _main(out_dir: Path) -> None:  # pragma: no cover - figure regeneration
     rec = make_world("loop", 0).recording
     res = run_slam(rec.scans, rec.odometry, rec.laser_in_base_xytheta, cfg)
     sc = rec.scans
-    pts = [
-        scan_points_base(
-            sc.ranges_m[i],
-            sc.angles_rad[i],
-            sc.range_min_m[i],
-            sc.range_max_m[i],
-            rec.laser_in_base_xytheta,
-            oc.min_range_m,
-            oc.max_range_m,
-        )
-        for i in range(len(sc))
-    ]
+    pts = scans_points_base(sc, rec.laser_in_base_xytheta, oc)
     plot_before_after(
         out_dir / "loop_before_after.png",
         res,

@@ -32,6 +32,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets.types import ScanSequence
 from slam import geometry as se2
 from slam.config import OdometryConfig
 from slam.scan_matching import (
@@ -131,6 +132,27 @@ def scan_points_base(
     r, a = r[ok], a[ok]
     pts = np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
     return se2.transform_points(np.asarray(laser_in_base_xytheta, dtype=np.float64), pts)
+
+
+def scans_points_base(
+    scans: ScanSequence, laser_in_base_xytheta: FloatArray, cfg: OdometryConfig, count: int | None = None
+) -> list[FloatArray]:
+    """:func:`scan_points_base` of the first ``count`` scans of ``scans`` (default all), with the range
+    limits of ``cfg``: a list of (P_i, 2) arrays."""
+    n = len(scans) if count is None else count
+    mount = np.asarray(laser_in_base_xytheta, dtype=np.float64)
+    return [
+        scan_points_base(
+            scans.ranges_m[i],
+            scans.angles_rad[i],
+            scans.range_min_m[i],
+            scans.range_max_m[i],
+            mount,
+            cfg.min_range_m,
+            cfg.max_range_m,
+        )
+        for i in range(n)
+    ]
 
 
 def wheel_increment_cov(inc_xytheta: FloatArray, cfg: OdometryConfig) -> FloatArray:

@@ -26,7 +26,7 @@ from slam.config import GraphConfig, SlamConfig
 from slam.graph import Edge, PoseGraph, edge_errors2
 from slam.keyframes import keyframe_of_scan, relative_cov_body, select_keyframes
 from slam.loop_closure import LoopCloser, LoopClosure
-from slam.odometry import ProgressLike, run_odometry, scan_points_base, stage
+from slam.odometry import ProgressLike, run_odometry, scans_points_base, stage
 
 FloatArray = NDArray[np.float64]
 
@@ -159,18 +159,7 @@ def run_slam(
     mount = np.asarray(laser_in_base_xytheta, dtype=np.float64)
 
     t0 = time.perf_counter()
-    points = [
-        scan_points_base(
-            scans.ranges_m[i],
-            scans.angles_rad[i],
-            scans.range_min_m[i],
-            scans.range_max_m[i],
-            mount,
-            oc.min_range_m,
-            oc.max_range_m,
-        )
-        for i in range(n)
-    ]
+    points = scans_points_base(scans, mount, oc)
     wheel = wheel_poses_at_scans(odometry, stamps) if odometry is not None and len(odometry) else None
     timings["points_s"] = time.perf_counter() - t0
 

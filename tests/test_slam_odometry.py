@@ -13,7 +13,7 @@ from slam import geometry as se2
 from slam import metrics
 from slam.config import OdometryConfig
 from slam.keyframes import keyframe_of_scan, select_keyframes
-from slam.odometry import FALLBACK, MATCHED, TOO_FEW_POINTS, run_odometry, scan_points_base
+from slam.odometry import FALLBACK, MATCHED, TOO_FEW_POINTS, run_odometry, scans_points_base
 from slam.system import wheel_poses_at_scans
 from tests.conftest import data_file
 
@@ -28,18 +28,7 @@ def intel_prefix() -> tuple:
     keep = idx < PREFIX
     sc = raw.scans
     cfg = OdometryConfig()
-    pts = [
-        scan_points_base(
-            sc.ranges_m[i],
-            sc.angles_rad[i],
-            sc.range_min_m[i],
-            sc.range_max_m[i],
-            raw.laser_in_base_xytheta,
-            cfg.min_range_m,
-            cfg.max_range_m,
-        )
-        for i in range(PREFIX)
-    ]
+    pts = scans_points_base(sc, raw.laser_in_base_xytheta, cfg, PREFIX)
     return pts, raw.scan_poses.poses_xytheta[:PREFIX], idx[keep], gfs.reference.poses_xytheta[keep]
 
 
@@ -63,18 +52,7 @@ def test_odometry_on_the_loop_world_with_and_without_wheels() -> None:
     rec = make_world("loop", 0).recording
     cfg = OdometryConfig()
     sc = rec.scans
-    pts = [
-        scan_points_base(
-            sc.ranges_m[i],
-            sc.angles_rad[i],
-            sc.range_min_m[i],
-            sc.range_max_m[i],
-            rec.laser_in_base_xytheta,
-            cfg.min_range_m,
-            cfg.max_range_m,
-        )
-        for i in range(len(sc))
-    ]
+    pts = scans_points_base(sc, rec.laser_in_base_xytheta, cfg)
     truth = rec.reference.poses_xytheta
     wheel = wheel_poses_at_scans(rec.odometry, sc.stamps_ns)
     with_wheels = run_odometry(pts, wheel, cfg)
@@ -166,18 +144,7 @@ def test_scans_alone_register_a_sparse_real_log() -> None:
     assert wheel is None and "corrected" in source
     cfg = OdometryConfig()
     sc = rec.scans
-    pts = [
-        scan_points_base(
-            sc.ranges_m[i],
-            sc.angles_rad[i],
-            sc.range_min_m[i],
-            sc.range_max_m[i],
-            rec.laser_in_base_xytheta,
-            cfg.min_range_m,
-            cfg.max_range_m,
-        )
-        for i in range(len(sc))
-    ]
+    pts = scans_points_base(sc, rec.laser_in_base_xytheta, cfg)
     odo = run_odometry(pts, None, cfg)
     assert odo.status_counts()["matched"] == len(sc) - 1
     truth = rec.reference.poses_xytheta
