@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 # Debian packages that the wheels need at import time (open3d links libusb-1.0).
 SYSTEM_PACKAGES := libusb-1.0-0
 
-.PHONY: all env system-deps demo test lint bench lock clean
+.PHONY: all env system-deps demo test fuzz lint bench lock clean
 
 all: demo
 
@@ -37,6 +37,11 @@ demo: env
 
 test: env
 	$(PY) -m pytest -q
+
+# The long profile of the fuzzing harness (tests/fuzz, ~10 minutes): random cases, thousands per property;
+# `make test` runs its short deterministic profile.
+fuzz: env
+	GPOM_FUZZ_PROFILE=long $(PY) -m pytest -q tests/fuzz --hypothesis-show-statistics
 
 lint: env
 	$(PY) -m ruff check .

@@ -21,6 +21,7 @@ from typing import Any
 from datasets.config import InputConfig
 from datasets.errors import DatasetError, UnknownFormatError
 from datasets.types import Recording
+from datasets.validate import validate_recording
 
 READERS: dict[str, str] = {
     "ros1": "datasets.rosbag:read_ros1",
@@ -72,7 +73,8 @@ def open_dataset(path: str | Path, config: InputConfig | None = None, **override
 
     ``config`` selects topics and options; keyword ``overrides`` replace single fields of it
     (e.g. ``open_dataset(p, scan_topic="/scan")``). Raises a :class:`~datasets.errors.DatasetError`
-    subclass on any bad input, with the file named in the message.
+    subclass on any bad input, with the file named in the message; what it returns passed
+    :func:`~datasets.validate.validate_recording` (finite angles, limits, poses; stamps in time order).
     """
     cfg = config or InputConfig()
     if overrides:
@@ -81,4 +83,4 @@ def open_dataset(path: str | Path, config: InputConfig | None = None, **override
     fmt = guess_format(path)
     module_name, func_name = READERS[fmt].split(":")
     reader = getattr(importlib.import_module(module_name), func_name)
-    return reader(Path(path), cfg)
+    return validate_recording(reader(Path(path), cfg))
