@@ -2,14 +2,17 @@
 """Command line of the GP occupancy-mapping tool (SPEC section 3).
 
 This file only parses arguments, loads the configuration, calls :mod:`pipeline` and turns known errors
-(:class:`datasets.errors.GpomError`) into one line on stderr with exit status 1. Usage errors exit 2.
+(:class:`datasets.errors.GpomError`) into one line on stderr with exit status 1. Usage errors exit 2;
+Ctrl-C exits 130 and SIGTERM 143, both after removing what the interrupted command had half written.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -147,20 +150,36 @@ def _dispatch(args: argparse.Namespace) -> int:
     return commands.dispatch(args, _print_json)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C so that every stage unwinds the same way (no partial run folder left)."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         args = parser.parse_args([*(sys.argv[1:] if argv is None else argv), "demo"])
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main_thread else None
     try:
         return _dispatch(args)
     except GpomError as exc:
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"error: {message}", file=sys.stderr)
         return 1
+    except Terminated:
+        print("terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

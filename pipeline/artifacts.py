@@ -143,6 +143,20 @@ def read_scan_covariances(path: Path, which: str = "after") -> tuple[NDArray[np.
         raise TrajectoryFormatError(f"{path}: not a covariance archive ({exc})") from None
 
 
+def read_keyframe_indices(path: Path) -> NDArray[np.int64]:
+    """The scan index of every keyframe (``indices``, (K,)) of a run's ``covariances.npz``."""
+    try:
+        with np.load(Path(path)) as z:
+            indices = np.asarray(z["indices"])
+    except FileNotFoundError:
+        raise TrajectoryFormatError(f"{path}: no such file or directory") from None
+    except (OSError, KeyError, ValueError) as exc:
+        raise TrajectoryFormatError(f"{path}: not a covariance archive ({exc})") from None
+    if indices.ndim != 1 or indices.dtype.kind not in "iu" or len(indices) == 0 or (indices < 0).any():
+        raise TrajectoryFormatError(f"{path}: 'indices' is not a list of scan indices")
+    return indices.astype(np.int64)
+
+
 def covariances_at(
     stamps_ns: NDArray[np.int64], cov_stamps_ns: NDArray[np.int64], cov: NDArray
 ) -> NDArray[np.float64]:
@@ -151,6 +165,8 @@ def covariances_at(
     cov = np.asarray(cov, dtype=np.float64)
     if cov.ndim != 3 or cov.shape[1:] != (3, 3) or cov.shape[0] != len(cov_stamps_ns) or len(cov) == 0:
         raise PipelineError(f"covariances of shape {cov.shape} for {len(cov_stamps_ns)} stamps")
+    if not np.isfinite(cov).all():
+        raise PipelineError("covariances: not every entry is finite")
     order = np.argsort(cov_stamps_ns, kind="stable")
     s = np.asarray(cov_stamps_ns, np.int64)[order]
     idx = np.searchsorted(s, np.asarray(stamps_ns, np.int64), side="right") - 1

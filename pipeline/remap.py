@@ -43,15 +43,16 @@ from pipeline.artifacts import (
     SCANS_FILE,
     TRAJECTORY_DIR,
     covariances_at,
+    read_keyframe_indices,
     read_scan_covariances,
     read_scans,
 )
 from pipeline.config import load_config, write_config
-from pipeline.errors import PipelineError
+from pipeline.errors import PipelineError, stage_boundary
 from pipeline.map_exports import write_maps
 from pipeline.progress import Progress
 from pipeline.run import StageTimer, select_scans
-from pipeline.run_folder import check_output_dir, read_summary, staged_run_folder, write_summary
+from pipeline.run_folder import SUMMARY_NAME, check_output_dir, read_summary, staged_run_folder, write_summary
 from pipeline.scale import engine_name, tile_engine, tiled_map
 from slam import geometry as se2
 from slam.trajectory_io import read_g2o, read_tum, write_tum
@@ -68,6 +69,20 @@ def parse_bounds(text: str | None) -> ms.Bounds | None:
         raise PipelineError(
             f"--bounds must be XMIN,YMIN,XMAX,YMAX with XMAX > XMIN and YMAX > YMIN, got {text!r}"
         )
+    return values[0], values[1], values[2], values[3]
+
+
+def stored_bounds(summary: Any, run_dir: Path) -> ms.Bounds:
+    """The map bounds ``map.bounds_xy_m`` of a run's summary, checked (a PipelineError names the file)."""
+    where = f"{Path(run_dir) / SUMMARY_NAME}"
+    try:
+        values = [float(v) for v in summary["map"]["bounds_xy_m"]]
+    except (TypeError, KeyError, ValueError, IndexError):
+        raise PipelineError(
+            f"{where}: no map bounds (map.bounds_xy_m): damaged, or not a run folder"
+        ) from None
+    if len(values) != 4 or not np.isfinite(values).all() or values[2] <= values[0] or values[3] <= values[1]:
+        raise PipelineError(f"{where}: map.bounds_xy_m is not XMIN, YMIN, XMAX, YMAX: {values}")
     return values[0], values[1], values[2], values[3]
 
 
@@ -128,13 +143,15 @@ def remap_run(
     progress = progress or Progress()
     timer = StageTimer()
     run_dir = Path(run_dir)
-    run_summary = read_summary(run_dir)
+    run_bounds = stored_bounds(read_summary(run_dir), run_dir)
     out_dir = Path(out_dir) if out_dir is not None else run_dir / "remap"
     check_output_dir(out_dir, overwrite)
     overrides = {"mapping": {"resolution_m": resolution_m}, "scale": {"scheduler": scheduler}}
     config = load_config(run_dir / "config.yaml", overrides)
     cfg = config.mapping
-    with timer("read"):
+    map_bounds = parse_bounds(bounds) or run_bounds
+    ms.check_map_cells(map_bounds, cfg.resolution_m, config.scale.max_map_cells, f"{run_dir}: the remap")
+    with timer("read"), stage_boundary("reading", run_dir):
         stored = read_scans(run_dir / SCANS_FILE)
         scans = stored.scans
         traj_dir = run_dir / TRAJECTORY_DIR
@@ -147,8 +164,11 @@ def remap_run(
         if poses is None:
             new_poses = run_poses
         elif Path(poses).suffix.lower() == ".g2o":
-            with np.load(traj_dir / COVARIANCES_NPZ) as z:
-                keyframes = np.asarray(z["indices"], dtype=np.int64)
+            keyframes = read_keyframe_indices(traj_dir / COVARIANCES_NPZ)
+            if keyframes.max() >= len(scans):
+                raise PipelineError(
+                    f"{traj_dir / COVARIANCES_NPZ}: keyframe indices beyond the {len(scans)} scans"
+                )
             new_poses = poses_from_g2o(Path(poses), run_poses, keyframes)
         elif Path(poses).suffix.lower() == ".tum":
             new_poses = poses_from_tum(Path(poses), scans.stamps_ns)
@@ -162,9 +182,6 @@ def remap_run(
             params = GPParams.load(ms.params_path(run_dir / "maps"))
         except (OSError, ParamsFileError) as exc:
             raise PipelineError(f"{run_dir}: cannot read the learnt GP parameters ({exc})") from None
-    run_map = run_summary["map"]
-    run_bounds = tuple(run_map["bounds_xy_m"])
-    map_bounds = parse_bounds(bounds) or run_bounds
     run_config = load_config(run_dir / "config.yaml")
     # the run's after map can be updated in place when it lies on the same tiles with the same settings
     incremental = (
@@ -175,13 +192,16 @@ def remap_run(
     )
     laser = stored.laser_in_base_xytheta
     selected = select_scans(odo_poses, laser, cfg)
-    with staged_run_folder(out_dir, overwrite) as stage:
+    with (
+        stage_boundary("writing", out_dir, name_known_errors=False),
+        staged_run_folder(out_dir, overwrite) as stage,
+    ):
         write_config(config, stage / "config.yaml")
         (stage / TRAJECTORY_DIR).mkdir()
         write_tum(stage / TRAJECTORY_DIR / "remap.tum", scans.stamps_ns, new_poses)
         new_beams = ms.make_beams(scans, new_poses, laser, cfg, selected)
         sc = config.scale
-        with timer(f"map_{MAP_NAME}"), tile_engine(sc) as renderer:
+        with timer(f"map_{MAP_NAME}"), stage_boundary("mapping", run_dir), tile_engine(sc) as renderer:
             if incremental:
                 run_layers = read_layers_npz(run_dir / "maps" / "after" / "layers.npz")
                 run_beams = ms.make_beams(scans, run_poses, laser, cfg, selected)

@@ -25,6 +25,7 @@ from mapping.tiling import IncrementalMap, TileRenderer, render_serial
 from pipeline import mapping_stage as ms
 from pipeline.artifacts import SCANS_FILE, TRAJECTORY_DIR, write_scans, write_trajectories
 from pipeline.config import Config, load_config, write_config
+from pipeline.errors import stage_boundary
 from pipeline.map_exports import max_variance, write_maps
 from pipeline.progress import Progress
 from pipeline.run_folder import check_output_dir, staged_run_folder, write_summary
@@ -98,13 +99,14 @@ def build_maps(
         name: ms.make_beams(rec_scans, poses, laser_in_base, cfg, selected)
         for name, (poses, _) in trajectories.items()
     }
+    if bounds is None:
+        bounds = ms.union_bounds(*(b.bounds_xy_m(MAP_MARGIN_M) for b in beams.values()))
+    ms.check_map_cells(bounds, cfg.resolution_m, config.scale.max_map_cells, "the maps of the run")
     if params is None:
         with timer("train"), progress.stage("train GP", total=1) as bar:
             first = next(iter(trajectories))
             params = ms.fit_params(beams[first], cfg, cov_xytheta=trajectories[first][1])
             bar.advance()
-    if bounds is None:
-        bounds = ms.union_bounds(*(b.bounds_xy_m(MAP_MARGIN_M) for b in beams.values()))
     layers: dict[str, MapLayers] = {}
     maps: dict[str, IncrementalMap] = {}
     for name, (_, cov) in trajectories.items():
@@ -182,13 +184,23 @@ def run_pipeline(
     check_output_dir(out_dir, overwrite)
     ms.check_mapper_available(config.mapping.mapper)
 
-    with timer("read"), progress.stage("read", total=1) as bar:
+    with timer("read"), progress.stage("read", total=1) as bar, stage_boundary("reading", input_path):
         rec = read_input(input_path, config)
         bar.advance()
-    with timer("slam"):
+    reach_m = ms.scan_reach_m(rec.scans) + MAP_MARGIN_M  # no map of this run is smaller than one scan's disc
+    ms.check_map_cells(
+        (-reach_m, -reach_m, reach_m, reach_m),
+        config.mapping.resolution_m,
+        config.scale.max_map_cells,
+        f"{input_path}: the map of a single scan",
+    )
+    with timer("slam"), stage_boundary("SLAM", input_path):
         slam = run_slam_recording(rec, config.slam, progress)
 
-    with staged_run_folder(out_dir, overwrite) as stage:
+    with (
+        stage_boundary("writing", out_dir, name_known_errors=False),
+        staged_run_folder(out_dir, overwrite) as stage,
+    ):
         write_config(config, stage / "config.yaml")
         write_scans(stage / SCANS_FILE, rec.scans, rec.laser_in_base_xytheta)
         files = write_trajectories(stage / TRAJECTORY_DIR, slam)
@@ -198,7 +210,7 @@ def run_pipeline(
             "before": (read_tum(files["odometry"])[1], slam.cov_before_xytheta),
             "after": (read_tum(files["optimized"])[1], slam.cov_after_xytheta),
         }
-        with tile_engine(config.scale) as renderer:
+        with stage_boundary("mapping", input_path), tile_engine(config.scale) as renderer:
             layers, maps, params, bounds = build_maps(
                 rec.scans, rec.laser_in_base_xytheta, trajectories, config, timer, progress, renderer=renderer
             )

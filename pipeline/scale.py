@@ -21,7 +21,10 @@ left per worker thread, so that workers do not oversubscribe the machine.
 
 from __future__ import annotations
 
+import logging
 import os
+import signal
+import threading
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -68,6 +71,46 @@ def _render_task(tile: int, job: RenderJob, numba_threads: int | None) -> TileRe
     return render_tile(job, tile)
 
 
+@contextmanager
+def _quiet_cluster_logs() -> Iterator[None]:
+    """Silence the local cluster's own log lines below CRITICAL, in this process and in the workers it
+    spawns (through the environment they inherit). When a run is interrupted or fails, the cluster's
+    shutdown races (heartbeats to a closed scheduler, cancelled tasks) print pages of tracebacks that hide
+    the one line the command line prints; a task's own error still reaches the run through its future."""
+    names = ("distributed", "tornado")
+    levels = {name: logging.getLogger(name).level for name in names}
+    env_key = "DASK_LOGGING__DISTRIBUTED"
+    previous_env = os.environ.get(env_key)
+    os.environ[env_key] = "critical"
+    for name in names:
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        for name, level in levels.items():
+            logging.getLogger(name).setLevel(level)
+        if previous_env is None:
+            os.environ.pop(env_key, None)
+        else:
+            os.environ[env_key] = previous_env
+
+
+@contextmanager
+def _children_ignore_sigint() -> Iterator[None]:
+    """Start processes that ignore SIGINT: Ctrl-C in a terminal reaches the whole process group, and the
+    local cluster's nannies and workers would each print a KeyboardInterrupt traceback while this process
+    shuts them down cleanly (an ignored signal stays ignored across fork and exec). Only the main thread may
+    change signal handlers; elsewhere this does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 class DaskEngine:
     """Renders tiles on a Dask cluster: a local one (``"local"``) or a running scheduler by address."""
 
@@ -80,6 +123,7 @@ class DaskEngine:
         self.threads_per_worker = threads_per_worker
         self.client = None
         self._cluster = None
+        self._quiet = None
         self.numba_threads: int | None = None
 
     def __enter__(self) -> DaskEngine:
@@ -87,12 +131,15 @@ class DaskEngine:
 
         try:
             if self.scheduler == "local":
-                self._cluster = LocalCluster(
-                    n_workers=self.workers,
-                    threads_per_worker=self.threads_per_worker,
-                    processes=True,
-                    dashboard_address=None,
-                )
+                self._quiet = _quiet_cluster_logs()
+                self._quiet.__enter__()
+                with _children_ignore_sigint():
+                    self._cluster = LocalCluster(
+                        n_workers=self.workers,
+                        threads_per_worker=self.threads_per_worker,
+                        processes=True,
+                        dashboard_address=None,
+                    )
                 self.client = Client(self._cluster)
                 cores = os.cpu_count() or 1
                 self.numba_threads = max(1, cores // (self.workers * self.threads_per_worker))
@@ -110,6 +157,9 @@ class DaskEngine:
         if self._cluster is not None:
             self._cluster.close()
             self._cluster = None
+        if self._quiet is not None:
+            self._quiet.__exit__(None, None, None)
+            self._quiet = None
 
     def __call__(self, job: RenderJob, tiles: Iterable[int]) -> Iterator[TileResult]:
         from distributed import as_completed

@@ -32,5 +32,10 @@ class ScaleConfig(BaseModel):
     connect_timeout_s: float = Field(
         20.0, gt=0, le=3600, description="how long to wait for a remote Dask scheduler"
     )
+    max_map_cells: int = Field(
+        50_000_000, ge=1, description="largest map (cells) a run or remap may render, checked before any "
+        "allocation: a rendered map costs ~80 bytes per cell at its peak (a run renders two), so 5e7 cells "
+        "(700 m x 700 m at 0.1 m) need ~4 GB per map"
+    )  # fmt: skip
     workers: int = Field(2, ge=1, le=512, description="worker processes of a 'local' cluster")
     threads_per_worker: int = Field(1, ge=1, le=512, description="threads per worker of a 'local' cluster")

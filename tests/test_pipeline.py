@@ -217,7 +217,11 @@ def test_run_refuses_existing_folder_and_bad_config(loop_bag, loop_run, tmp_path
     assert not (tmp_path / "o").exists()
 
 
-def test_interrupted_run_leaves_no_complete_folder(loop_bag, tmp_path) -> None:
+@pytest.mark.parametrize(
+    ("sig", "status", "said"), [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated")]
+)
+def test_interrupted_run_leaves_no_complete_folder(loop_bag, tmp_path, sig, status, said) -> None:
+    """Ctrl-C and SIGTERM (a service manager, a cluster's time limit) both unwind the run: no folder left."""
     out = tmp_path / "run"
     cfg = write_config(tmp_path / "fast.yaml", FAST_TRAINING)
     proc = subprocess.Popen(
@@ -246,10 +250,10 @@ def test_interrupted_run_leaves_no_complete_folder(loop_bag, tmp_path) -> None:
         time.sleep(0.05)
     assert list(tmp_path.glob("run.partial-*")), "the run never started writing"
     time.sleep(0.5)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     _, stderr = proc.communicate(timeout=120)
-    assert proc.returncode == 130, stderr
-    assert "interrupted" in stderr and "Traceback" not in stderr
+    assert proc.returncode == status, stderr
+    assert said in stderr and "Traceback" not in stderr
     assert not out.exists()
     assert not list(tmp_path.glob("run.partial-*"))
 

@@ -1,0 +1,292 @@
+"""Bad input to the pipeline stages (issue 15): resources checked before work, output folders that cannot be
+written, staging folders of killed runs, damaged run folders for ``remap``, library exceptions turned into one
+line at the stage boundary, messages that name the file.
+
+The run is a real one: the first 80 scans of the raw Intel log (intel.clf), mapped with GPFOL and short
+training so the module's run takes seconds.
+"""
+
+from __future__ import annotations
+
+import bz2
+import errno
+import json
+import os
+import shutil
+import subprocess
+import sys
+from collections import namedtuple
+from pathlib import Path
+
+import pytest
+import yaml
+
+from datasets.errors import GpomError
+from pipeline import mapping_stage as ms
+from pipeline.errors import PipelineError
+from pipeline.remap import remap_run
+from pipeline.run import run_pipeline
+from pipeline.run_folder import remove_stale_staging, staged_run_folder, write_summary
+from tests.conftest import REPO, data_file
+
+FAST = {"mapping": {"train_anneal_evaluations": 10, "train_lbfgs_iterations": 10, "mapper": "gpfol"}}
+
+
+def _config(folder: Path, overrides: dict) -> Path:
+    path = folder / "config.yaml"
+    merged = {k: dict(v) for k, v in FAST.items()}
+    for section, values in overrides.items():
+        merged.setdefault(section, {}).update(values)
+    path.write_text(yaml.safe_dump(merged))
+    return path
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "run.py", "-q", *args], cwd=REPO, capture_output=True, text=True, timeout=600
+    )
+
+
+def _one_line_error(proc: subprocess.CompletedProcess, pattern: str) -> str:
+    import re
+
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
+    assert re.search(pattern, lines[0]), lines[0]
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def small_log(tmp_path_factory) -> Path:
+    """The first 80 laser scans of intel.clf (with their odometry), as a plain CARMEN log."""
+    lines, scans = [], 0
+    with bz2.open(data_file("intel/intel.clf.bz2"), "rt") as f:
+        for line in f:
+            lines.append(line)
+            scans += line.startswith(("FLASER", "ROBOTLASER1"))
+            if scans == 80:
+                break
+    path = tmp_path_factory.mktemp("log") / "intel-80.clf"
+    path.write_text("".join(lines))
+    return path
+
+
+@pytest.fixture(scope="module")
+def small_run(small_log, tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("run")
+    out = folder / "run"
+    run_pipeline(small_log, out, config_path=_config(folder, {}))
+    return out
+
+
+def _fail(*_args, **_kwargs):
+    raise AssertionError("this stage must not run")
+
+
+# --- resources, before any work ---------------------------------------------------------------------------
+
+
+def test_a_map_finer_than_memory_allows_fails_before_slam(small_log, tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr("pipeline.run.run_slam_recording", _fail)
+    single_scan = r"the map of a single scan: .* cells, above scale\.max_map_cells"
+    with pytest.raises(PipelineError, match=single_scan):
+        run_pipeline(small_log, tmp_path / "r", config_path=_config(tmp_path, {}), resolution_m=1e-4)
+    assert list(tmp_path.iterdir()) == [tmp_path / "config.yaml"]
+
+
+def test_the_run_bounds_are_checked_before_training(small_log, tmp_path, monkeypatch) -> None:
+    """A map larger than the limit only because of where SLAM put the scans fails before training and
+    rendering (here the single-scan estimate is disabled so that the check on the run's bounds is what
+    catches it)."""
+    monkeypatch.setattr(ms, "scan_reach_m", lambda scans: 0.0)
+    monkeypatch.setattr(ms, "fit_params", _fail)
+    cfg = _config(tmp_path, {"scale": {"max_map_cells": 1000}})
+    whole_run = rf"{small_log}: the maps of the run: .* cells, above .* = 1e\+03"
+    with pytest.raises(PipelineError, match=whole_run):
+        run_pipeline(small_log, tmp_path / "r", config_path=cfg)
+    assert not (tmp_path / "r").exists() and not list(tmp_path.glob("r.partial-*"))
+
+
+def test_cli_remap_over_huge_bounds_is_one_line_before_reading(small_run, tmp_path) -> None:
+    proc = _cli("remap", str(small_run), "--bounds=-1e6,-1e6,1e6,1e6", "--out", str(tmp_path / "m"))
+    _one_line_error(proc, r"the remap: 2e\+06 x 2e\+06 m at 0\.1 m is .* cells, above scale\.max_map_cells")
+    assert not (tmp_path / "m").exists()
+
+
+def test_remap_checks_the_size_before_reading_the_scans(small_run, tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr("pipeline.remap.read_scans", _fail)
+    with pytest.raises(PipelineError, match=r"cells, above scale\.max_map_cells"):
+        remap_run(small_run, resolution_m=1e-5, out_dir=tmp_path / "m")
+
+
+def test_output_below_a_file_fails_before_reading(small_log, tmp_path, monkeypatch) -> None:
+    (tmp_path / "file").write_text("")
+    monkeypatch.setattr("pipeline.run.open_dataset", _fail)
+    with pytest.raises(PipelineError, match=r"file/run: cannot be created \(.*file is not a folder\)"):
+        run_pipeline(small_log, tmp_path / "file" / "run")
+
+
+def test_unwritable_output_folder_fails_before_reading(small_log, tmp_path, monkeypatch) -> None:
+    """The probe creates a file (root passes permission bits, so the refusal is simulated at the probe)."""
+
+    def refuse(*_a, **_k):
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    monkeypatch.setattr("pipeline.run.open_dataset", _fail)
+    monkeypatch.setattr("pipeline.run_folder.tempfile.TemporaryFile", refuse)
+    with pytest.raises(PipelineError, match=r"out/run: cannot write into .* \(Permission denied\)"):
+        run_pipeline(small_log, tmp_path / "out" / "run")
+
+
+def test_full_disk_fails_before_reading(small_log, tmp_path, monkeypatch) -> None:
+    usage = namedtuple("usage", "total used free")
+    one_mib_free = usage(10**9, 10**9 - 2**20, 2**20)
+    monkeypatch.setattr("pipeline.run_folder.shutil.disk_usage", lambda _p: one_mib_free)
+    monkeypatch.setattr("pipeline.run.open_dataset", _fail)
+    with pytest.raises(PipelineError, match=r"only 1 MiB free on the disk of .* needs at least 64 MiB"):
+        run_pipeline(small_log, tmp_path / "run")
+
+
+def test_disk_full_while_writing_is_one_line_and_leaves_nothing(small_log, tmp_path, monkeypatch) -> None:
+    def no_space(folder, *_a, **_k):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(Path(folder) / "after" / "occupancy.png"))
+
+    monkeypatch.setattr("pipeline.run.write_maps", no_space)
+    out = tmp_path / "run"
+    with pytest.raises(PipelineError, match=r"run: writing failed: OSError: No space left on device: .*png"):
+        run_pipeline(small_log, out, config_path=_config(tmp_path, {}))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.yaml"]
+
+
+# --- staging folders of killed runs -----------------------------------------------------------------------
+
+
+def _dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_staging_folders_of_dead_processes_are_removed(tmp_path) -> None:
+    out = tmp_path / "run"
+    dead, live = _dead_pid(), os.getppid()
+    for name in (f"run.partial-{dead}", f"run.replaced-{dead}", f"run.partial-{live}", "run.partial-x"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "a.txt").write_text("x")
+    (tmp_path / f"other.partial-{dead}").mkdir()  # another run folder's: not ours to touch
+    with staged_run_folder(out) as stage:
+        write_summary(stage, {})
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == sorted(["run", f"run.partial-{live}", "run.partial-x", f"other.partial-{dead}"])
+    assert remove_stale_staging(tmp_path / "other") == [tmp_path / f"other.partial-{dead}"]
+
+
+# --- library exceptions and messages ----------------------------------------------------------------------
+
+
+def test_a_gtsam_failure_in_slam_is_one_line_naming_the_input(small_log, tmp_path, monkeypatch) -> None:
+    def indeterminate(*_a, **_k):  # what GTSAM's IndeterminateSystemException looks like from Python
+        raise RuntimeError(
+            "\nIndeterminant linear system detected while working near variable\n7 (Symbol: x7).\n\n"
+            "Thrown when a linear system is ill-posed."
+        )
+
+    monkeypatch.setattr("pipeline.run.run_slam_recording", indeterminate)
+    with pytest.raises(PipelineError) as info:
+        run_pipeline(small_log, tmp_path / "r", config_path=_config(tmp_path, {}))
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"{small_log}: SLAM failed: RuntimeError: Indeterminant linear system")
+
+
+def test_gp_training_failure_names_the_input(small_log, tmp_path) -> None:
+    """200 occupied neighbours per query cannot be found in the first scan: the message says of which file."""
+    cfg = _config(tmp_path, {"mapping": {"k_occupied": 200, "k_free": 200, "train_scans": 1}})
+    with pytest.raises(GpomError, match=rf"^{small_log}: cannot train the GP: no training neighbourhood"):
+        run_pipeline(small_log, tmp_path / "r", config_path=cfg)
+
+
+# --- remap on damaged run folders --------------------------------------------------------------------------
+
+
+@pytest.fixture
+def damaged(small_run, tmp_path) -> Path:
+    copy = tmp_path / "copy"
+    shutil.copytree(small_run, copy)
+    return copy
+
+
+NOT_BOUNDS = r"map\.bounds_xy_m is not XMIN, YMIN, XMAX, YMAX"
+
+
+@pytest.mark.parametrize(
+    ("summary", "pattern"),
+    [
+        ([], r"no map bounds \(map\.bounds_xy_m\): damaged, or not a run folder"),
+        ({"map": 3}, r"no map bounds"),
+        ({"map": {"bounds_xy_m": [0, 0, "x", 1]}}, r"no map bounds"),
+        ({"map": {"bounds_xy_m": [0, 0, 1]}}, NOT_BOUNDS),
+        ({"map": {"bounds_xy_m": [0, 0, float("nan"), 1]}}, NOT_BOUNDS),
+    ],
+)
+def test_remap_on_a_summary_of_the_wrong_shape(damaged, tmp_path, summary, pattern) -> None:
+    (damaged / "summary.json").write_text(json.dumps(summary))
+    proc = _cli("remap", str(damaged), "--out", str(tmp_path / "m"))
+    _one_line_error(proc, rf"{damaged}/summary\.json: {pattern}")
+
+
+@pytest.mark.parametrize("poses", [None, "g2o"])
+def test_remap_without_covariances(damaged, tmp_path, poses) -> None:
+    (damaged / "trajectory" / "covariances.npz").unlink()
+    extra = [] if poses is None else ["--poses", str(damaged / "trajectory" / "pose_graph.g2o")]
+    proc = _cli("remap", str(damaged), "--out", str(tmp_path / "m"), *extra)
+    _one_line_error(proc, r"covariances\.npz: no such file or directory")
+
+
+def test_remap_with_non_finite_covariances(damaged, tmp_path) -> None:
+    import numpy as np
+
+    path = damaged / "trajectory" / "covariances.npz"
+    with np.load(path) as z:
+        arrays = dict(z)
+    arrays["scan_after"][3, 0, 0] = np.nan
+    np.savez(path, **arrays)
+    proc = _cli("remap", str(damaged), "--out", str(tmp_path / "m"))
+    _one_line_error(proc, r"covariances: not every entry is finite")
+
+
+# --- Ctrl-C under a local Dask cluster ---------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_ctrl_c_under_a_local_cluster_prints_no_worker_traceback(small_log, tmp_path) -> None:
+    """A terminal's Ctrl-C reaches the whole process group: the cluster's workers must not print
+    tracebacks of their own while the run unwinds."""
+    import signal
+    import time
+
+    out = tmp_path / "run"
+    cfg = _config(tmp_path, {})
+    args = ["run", str(small_log), "--out", str(out), "--config", str(cfg), "--scheduler", "local"]
+    proc = subprocess.Popen(
+        [sys.executable, "run.py", "-q", *args],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    deadline = time.monotonic() + 300
+    while not list(tmp_path.glob("run.partial-*")) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    assert list(tmp_path.glob("run.partial-*")), "the run never started writing"
+    time.sleep(4.0)  # the cluster is up and rendering
+    assert proc.poll() is None, "the run ended before it could be interrupted"
+    os.killpg(proc.pid, signal.SIGINT)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, stderr
+    assert "interrupted" in stderr and "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
+    assert not out.exists() and not list(tmp_path.glob("run.partial-*"))
