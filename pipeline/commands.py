@@ -26,9 +26,13 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
+from pipeline.errors import stage_boundary
 from pipeline.progress import progress_for_terminal
 
 EmitJson = Callable[[Any], None]
+
+#: The argument naming what a command works on, in order of preference (for error messages).
+SUBJECT_ARGS = ("input", "run_dir", "data", "out")
 
 
 def dispatch(args: argparse.Namespace, emit_json: EmitJson) -> int:
@@ -42,7 +46,10 @@ def dispatch(args: argparse.Namespace, emit_json: EmitJson) -> int:
         "evaluate": cmd_evaluate,
         "bench": cmd_bench,
     }[args.command]
-    return handler(args, emit_json)
+    # the last line of defence: a library exception no stage translated is still one line naming the input
+    subject = next((str(v) for k in SUBJECT_ARGS if (v := getattr(args, k, None)) is not None), args.command)
+    with stage_boundary(args.command, subject, name_known_errors=False):
+        return handler(args, emit_json)
 
 
 def _say(text: str) -> None:

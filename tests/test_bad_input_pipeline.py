@@ -290,3 +290,21 @@ def test_ctrl_c_under_a_local_cluster_prints_no_worker_traceback(small_log, tmp_
     assert proc.returncode == 130, stderr
     assert "interrupted" in stderr and "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr
     assert not out.exists() and not list(tmp_path.glob("run.partial-*"))
+
+
+@pytest.mark.parametrize(
+    "exc",
+    [MemoryError(), OSError(errno.ENOSPC, "No space left on device"), RuntimeError("Indeterminant\nsystem")],
+)
+def test_any_command_turns_a_library_exception_into_one_line(small_log, tmp_path, monkeypatch, capsys, exc):
+    """The command line's last line of defence, for the commands without stages of their own (convert)."""
+    import run
+
+    def explode(*_a, **_k):
+        raise exc
+
+    monkeypatch.setattr("pipeline.convert.convert_recording", explode)
+    assert run.main(["-q", "convert", str(small_log), str(tmp_path / "x.bag")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    expected = f"error: {small_log}: convert failed: {type(exc).__name__}"
+    assert len(err) == 1 and err[0].startswith(expected), err
