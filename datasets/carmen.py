@@ -55,6 +55,12 @@ and line order.
 
 In a corrected log the ODOM records are the SLAM's pose estimates, not wheel odometry; they are still
 returned as ``odometry`` (``meta["odometry_is_corrected"]`` says so).
+
+Damaged values are a CarmenError naming the line and field, never a warning or an overflow further on:
+non-finite numbers; ranges beyond float32; pose coordinates beyond ``datasets.validate.MAX_COORDINATE_M``;
+headings beyond 1e6 rad; ROBOTLASER1 start angles or resolutions beyond 1e3 rad, and maximum ranges beyond
+float32 or not above ``InputConfig.carmen_range_min_m``; ipc stamps beyond the years 1740-2200
+(``datasets.validate.MAX_STAMP_NS``; logger stamps only need to fit int64 nanoseconds).
 """
 
 from __future__ import annotations
@@ -75,11 +81,15 @@ from datasets.no_return import repeated_maximum_m
 from datasets.numtext import NumberParseError, parse_floats, parse_stamps_ns
 from datasets.stamps import NS_PER_S, monotone_stamps_ns, ns_to_decimal
 from datasets.types import Recording, ScanSequence, Trajectory, beam_angles_rad, wrap_angle_rad
+from datasets.validate import MAX_COORDINATE_M, MAX_STAMP_NS
 
 LASER_RECORDS = ("FLASER", "RLASER", "ROBOTLASER1")
 _FLASER_FIXED_FIELDS = 11  # name, n, 6 pose values, ipc, host, logger
 _ROBOTLASER_FIXED_FIELDS = 24  # name, 7 settings, n, m, 6 pose values, 5 motion values, ipc, host, logger
 _ODOM_FIELDS = 10
+_FLOAT32_MAX = float(np.finfo(np.float32).max)  # ranges are kept as float32
+_MAX_HEADING_RAD = 1e6  # |theta| of a pose beyond this is damage (unwrapped odometry stays far below)
+_MAX_ANGLE_RAD = 1e3  # ROBOTLASER1 angle settings beyond this are damage (and lose all precision in float32)
 _GZIP_MAGIC = b"\x1f\x8b"
 _BZIP2_MAGIC = b"BZh"
 __all__ = [
@@ -120,12 +130,14 @@ def read_carmen(path: str | Path, cfg: InputConfig | None = None) -> Recording:
     counts = {name: len(rows) for name, rows in rows_by_type.items()}
     kind = _choose_laser(path, counts, cfg.carmen_laser)
     corrected = is_corrected_log(path)
-    jitter_ns = round(cfg.carmen_stamp_jitter_s * NS_PER_S)
+    jitter_s = cfg.carmen_stamp_jitter_s
+    # a jitter beyond int64 ns (up to inf) allows any step back
+    jitter_ns = round(jitter_s * NS_PER_S) if jitter_s * NS_PER_S < 2.0**64 else 1 << 64
 
     laser = _parse_laser(path, kind, lines, rows_by_type[kind], cfg)
     if not corrected:
         _check_backsteps(path, kind, laser["ipc_ns"], laser["line_numbers"], jitter_ns, cfg)
-    scan_stamps, scan_restamped = monotone_stamps_ns(laser["ipc_ns"])
+    scan_stamps, scan_restamped = _monotone(path, kind, laser["ipc_ns"])
 
     odometry = None
     odom_meta: dict = {}
@@ -134,7 +146,7 @@ def read_carmen(path: str | Path, cfg: InputConfig | None = None) -> Recording:
         odom = _parse_odom(path, lines, rows_by_type["ODOM"])
         if not corrected:
             _check_backsteps(path, "ODOM", odom["ipc_ns"], odom["line_numbers"], jitter_ns, cfg)
-        odom_stamps, restamped = monotone_stamps_ns(odom["ipc_ns"])
+        odom_stamps, restamped = _monotone(path, "ODOM", odom["ipc_ns"])
         odom_restamped = int(restamped.sum())
         odometry = Trajectory(odom_stamps, odom["poses_xytheta"], frame_id="odom")
         odom_meta = {
@@ -211,6 +223,8 @@ def _load_text(path: Path) -> bytes:
             ) from None
         except (OSError, zlib.error):
             raise CarmenError(f"{path}: corrupt gzip file (bad compressed data or checksum)") from None
+        except MemoryError:
+            raise CarmenError(f"{path}: the decompressed log does not fit in memory") from None
     if raw.startswith(_BZIP2_MAGIC):
         try:
             return bz2.decompress(raw)
@@ -220,6 +234,8 @@ def _load_text(path: Path) -> bytes:
             ) from None
         except OSError:
             raise CarmenError(f"{path}: corrupt bzip2 file (bad compressed data)") from None
+        except MemoryError:
+            raise CarmenError(f"{path}: the decompressed log does not fit in memory") from None
     if suffix == ".gz":
         raise CarmenError(f"{path}: not a gzip file (named .gz but no gzip header)")
     if suffix == ".bz2":
@@ -307,13 +323,64 @@ def _check_finite(
     path: Path, kind: str, lines: list[bytes], rows: Sequence[int], values: NDArray, offsets: NDArray
 ) -> None:
     """CarmenError at the first non-finite value; ``offsets`` (R+1,) are the rows' starts in ``values``."""
-    bad = np.flatnonzero(~np.isfinite(values))
-    if bad.size == 0:
+    _reject_first(path, kind, lines, rows, ~np.isfinite(values), offsets, "is not finite")
+
+
+def _reject_first(
+    path: Path,
+    kind: str,
+    lines: list[bytes],
+    rows: Sequence[int],
+    bad: NDArray[np.bool_],
+    offsets: NDArray,
+    why: str,
+) -> None:
+    """CarmenError naming line and field of the first True of ``bad`` (a mask over the rows' values)."""
+    where = np.flatnonzero(bad)
+    if where.size == 0:
         return
-    j = int(np.searchsorted(offsets, bad[0], side="right") - 1)
-    field = int(bad[0] - offsets[j]) + 2  # values start at the second field
+    j = int(np.searchsorted(offsets, where[0], side="right") - 1)
+    field = int(where[0] - offsets[j]) + 2  # values start at the second field
     token = lines[rows[j]].split()[field - 1].decode("ascii", "replace")
-    raise CarmenError(f"{path}: line {rows[j] + 1}: {kind} field {field} is not finite ('{token}')")
+    raise CarmenError(f"{path}: line {rows[j] + 1}: {kind} field {field} {why} ('{token}')")
+
+
+def _value_mask(size: int, index: NDArray) -> NDArray[np.bool_]:
+    """(size,) False with True at ``index`` (any shape)."""
+    out = np.zeros(size, dtype=bool)
+    out[np.asarray(index, dtype=np.int64).ravel()] = True
+    return out
+
+
+def _check_in_range(
+    path: Path,
+    kind: str,
+    lines: list[bytes],
+    rows: Sequence[int],
+    values: NDArray,
+    offsets: NDArray,
+    checks: Sequence[tuple[NDArray, float, str]],
+) -> None:
+    """CarmenError at the first value out of range; ``checks``: (value indices, largest |value|, what)."""
+    first: tuple[int, str] | None = None
+    for index, limit, what in checks:
+        index = np.asarray(index, dtype=np.int64).ravel()
+        over = index[np.abs(values[index]) > limit]
+        if over.size and (first is None or int(over.min()) < first[0]):
+            first = (int(over.min()), f"{what} is out of range (|value| > {limit:g})")
+    if first is not None:
+        _reject_first(path, kind, lines, rows, _value_mask(values.shape[0], first[0]), offsets, first[1])
+
+
+def _check_stamp_range(path: Path, kind: str, stamps_ns: NDArray, rows: Sequence[int], what: str) -> None:
+    """CarmenError at the first stamp beyond the year 2200 (or as far before 1970)."""
+    bad = np.flatnonzero(np.abs(stamps_ns) > MAX_STAMP_NS)
+    if bad.size:
+        j = int(bad[0])
+        raise CarmenError(
+            f"{path}: line {rows[j] + 1}: {kind} {what} {ns_to_decimal(int(stamps_ns[j]))} s is out of range "
+            "(after the year 2200 or as far before 1970)"
+        )
 
 
 def _stamps(path: Path, kind: str, tokens: list[bytes], rows: Sequence[int], what: str) -> NDArray[np.int64]:
@@ -357,7 +424,18 @@ def _parse_laser(path: Path, kind: str, lines: list[bytes], rows: list[int], cfg
     first_range = starts + (8 if kind == "ROBOTLASER1" else 1)
     pose_start = first_range + beams + (remissions + 1 if kind == "ROBOTLASER1" else 0)
     before = np.concatenate([[0], np.cumsum(beams)[:-1]])
-    flat_ranges = values[np.repeat(first_range - before, beams) + np.arange(int(beams.sum()))]
+    range_index = np.repeat(first_range - before, beams) + np.arange(int(beams.sum()))
+    xy_index = pose_start[:, None] + np.array([0, 1, 3, 4])
+    checks = [
+        (range_index, _FLOAT32_MAX, "range"),
+        (xy_index, MAX_COORDINATE_M, "pose coordinate (m)"),
+        (pose_start[:, None] + np.array([2, 5]), _MAX_HEADING_RAD, "pose heading (rad)"),
+    ]
+    if kind == "ROBOTLASER1":  # start angle, angular resolution, maximum range
+        checks.append((starts[:, None] + np.array([1, 3]), _MAX_ANGLE_RAD, "angle (rad)"))
+        checks.append((starts + 4, _FLOAT32_MAX, "maximum range"))
+    _check_in_range(path, kind, lines, rows, values, offsets, checks)
+    flat_ranges = values[range_index]
     negative = np.flatnonzero(flat_ranges < 0)
     if negative.size:
         j = int(np.searchsorted(before, negative[0], side="right") - 1)
@@ -373,6 +451,13 @@ def _parse_laser(path: Path, kind: str, lines: list[bytes], rows: list[int], cfg
         start_rad, res_rad, max_m = (values[starts + k] for k in (1, 3, 4))
         keys = list(zip(start_rad.tolist(), res_rad.tolist(), beams.tolist(), strict=True))
         declared = np.where(max_m > 0, max_m, cfg.carmen_range_max_m)
+        low = np.flatnonzero(declared.astype(np.float32) <= np.float32(cfg.carmen_range_min_m))
+        if low.size:
+            j = int(low[0])
+            raise CarmenError(
+                f"{path}: line {rows[j] + 1}: ROBOTLASER1 maximum range {max_m[j]:g} m is not above "
+                f"input.carmen_range_min_m = {cfg.carmen_range_min_m:g} m"
+            )
         rule = "the maximum range declared in each ROBOTLASER1 record"
     else:  # FLASER / RLASER: 180 degrees, angle_i = -pi/2 + i*pi/n; no declared maximum
         keys = [(-np.pi / 2, np.pi / n, n) for n in beams.tolist()]
@@ -381,7 +466,7 @@ def _parse_laser(path: Path, kind: str, lines: list[bytes], rows: list[int], cfg
     # a reading the log repeats at the top of its range is its no-return code (fr-clinic logs 81.83 m
     # beside its declared 81.9 m); below the declared maximum it takes over
     repeated = repeated_maximum_m(flat_ranges)
-    if repeated is not None and repeated.value_m < float(np.min(declared)):
+    if repeated is not None and cfg.carmen_range_min_m < repeated.value_m < float(np.min(declared)):
         range_max = np.minimum(declared, repeated.value_m)
         no_return = {
             "rule": "the log's repeated maximum reading",
@@ -396,7 +481,14 @@ def _parse_laser(path: Path, kind: str, lines: list[bytes], rows: list[int], cfg
             no_return["repeated_maximum_m"] = list(repeated.values_m)
     angle_cache: dict[tuple, NDArray[np.float32]] = {}  # scans with equal settings share one array
     for k in set(keys):
-        angle_cache[k] = beam_angles_rad(*k)
+        with np.errstate(all="ignore"):  # checked below
+            angle_cache[k] = beam_angles_rad(*k)
+        if not np.isfinite(angle_cache[k]).all():
+            j = keys.index(k)
+            raise CarmenError(
+                f"{path}: line {rows[j] + 1}: {kind} beam angles are not finite (start angle {k[0]:g} rad, "
+                f"resolution {k[1]:g} rad, {k[2]} beams)"
+            )
     angles = [angle_cache[k] for k in keys]
     return {
         "ranges": ranges,
@@ -405,10 +497,17 @@ def _parse_laser(path: Path, kind: str, lines: list[bytes], rows: list[int], cfg
         "no_return": no_return,
         "laser_xytheta": poses[:, :3].copy(),
         "base_xytheta": poses[:, 3:].copy(),
-        "ipc_ns": _stamps(path, kind, ipc, rows, "ipc timestamp"),
+        "ipc_ns": _ipc_stamps(path, kind, ipc, rows),
         "logger_ns": _stamps(path, kind, logger, rows, "logger timestamp"),
         "line_numbers": np.asarray(rows, dtype=np.int64) + 1,
     }
+
+
+def _ipc_stamps(path: Path, kind: str, tokens: list[bytes], rows: Sequence[int]) -> NDArray[np.int64]:
+    """The ipc stamps (the records' stamps): exact, and within the years a recording can have."""
+    stamps_ns = _stamps(path, kind, tokens, rows, "ipc timestamp")
+    _check_stamp_range(path, kind, stamps_ns, rows, "ipc timestamp")
+    return stamps_ns
 
 
 def _parse_odom(path: Path, lines: list[bytes], rows: list[int]) -> dict:
@@ -427,10 +526,16 @@ def _parse_odom(path: Path, lines: list[bytes], rows: list[int]) -> dict:
         ipc.append(toks[7])
         logger.append(toks[9])
     values = _parse_floats(path, "ODOM", rows, pieces, np.full(len(rows), 6))
-    _check_finite(path, "ODOM", lines, rows, values, np.arange(len(rows) + 1) * 6)
+    offsets = np.arange(len(rows) + 1) * 6
+    _check_finite(path, "ODOM", lines, rows, values, offsets)
+    checks = [
+        (offsets[:-1, None] + np.array([0, 1]), MAX_COORDINATE_M, "coordinate (m)"),
+        (offsets[:-1] + 2, _MAX_HEADING_RAD, "heading (rad)"),
+    ]
+    _check_in_range(path, "ODOM", lines, rows, values, offsets, checks)
     return {
         "poses_xytheta": values.reshape(-1, 6)[:, :3].copy(),
-        "ipc_ns": _stamps(path, "ODOM", ipc, rows, "ipc timestamp"),
+        "ipc_ns": _ipc_stamps(path, "ODOM", ipc, rows),
         "logger_ns": _stamps(path, "ODOM", logger, rows, "logger timestamp"),
         "line_numbers": np.asarray(rows, dtype=np.int64) + 1,
     }
@@ -458,15 +563,33 @@ def _laser_in_base(laser_xytheta: NDArray, base_xytheta: NDArray) -> NDArray[np.
     return offset
 
 
+def _monotone(path: Path, kind: str, stamps_ns: NDArray) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """:func:`monotone_stamps_ns`, and CarmenError when the re-stamped records leave the usable years."""
+    stamps, restamped = monotone_stamps_ns(stamps_ns)
+    if stamps.size and (
+        np.any(stamps[1:] <= stamps[:-1]) or max(abs(int(stamps[0])), abs(int(stamps[-1]))) > MAX_STAMP_NS
+    ):
+        raise CarmenError(
+            f"{path}: the {kind} timestamps cannot be put in order within the years 1740-2200 "
+            f"({int(restamped.sum())} records re-stamped): the stamps are damaged"
+        )
+    return stamps, restamped
+
+
 def _check_backsteps(
     path: Path, kind: str, stamps_ns: NDArray, line_numbers: NDArray, jitter_ns: int, cfg: InputConfig
 ) -> None:
     """CarmenError when a stamp lies more than the jitter before the latest earlier stamp of its kind."""
     if stamps_ns.shape[0] < 2:
         return
-    latest = np.maximum.accumulate(stamps_ns)
-    back = latest[:-1] - stamps_ns[1:]
-    bad = np.flatnonzero(back > jitter_ns)
+    span_ns = int(stamps_ns.max()) - int(stamps_ns.min())
+    if span_ns <= jitter_ns:  # no step back can exceed the jitter (also: an infinite jitter)
+        return
+    # stamps far apart overflow int64 differences: Python ints then
+    work = stamps_ns.astype(object) if span_ns >= 1 << 62 else stamps_ns
+    latest = np.maximum.accumulate(work)
+    back = latest[:-1] - work[1:]
+    bad = np.flatnonzero(back > jitter_ns)  # jitter_ns may exceed int64 only when span_ns <= jitter_ns
     if bad.size == 0:
         return
     j = int(bad[0]) + 1

@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 class InputConfig(BaseModel):
     """How a recording is read: topics, CARMEN record types, and the 3D-to-2D height band."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     scan_topic: str | None = Field(
         None,

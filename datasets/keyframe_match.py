@@ -35,6 +35,7 @@ from datasets.types import Recording
 
 MATCH_METHODS: tuple[str, ...] = ("stamp", "content_order", "unmatched")
 _MAX_WINDOW_SCANS = 64  # a stamp window holding more raw scans says the stamps do not separate scans
+_MAX_WINDOW_NS = 1 << 62  # a wider stamp window (window_s beyond 146 years) is clipped to this
 _MEAN_SLACK_M = 1e-6  # float64 rounding of the mean ranges in the content prefilter
 
 
@@ -149,9 +150,11 @@ def _match_by_stamp(
     unique = shared[inverse] == 1  # a stamp several keyframes carry identifies none of them
     order = np.argsort(f_stamps, kind="stable")
     ordered = np.asarray(f_stamps, dtype=np.int64)[order]
-    window_ns = round(window_s * NS_PER_S)
-    lo = np.searchsorted(ordered, k_stamps - window_ns, side="left")
-    hi = np.searchsorted(ordered, k_stamps + window_ns, side="right")
+    window_ns = min(round(window_s * NS_PER_S), _MAX_WINDOW_NS)
+    # stamps near the int64 limits would wrap around in the window arithmetic: saturate the window ends
+    info = np.iinfo(np.int64)
+    lo = np.searchsorted(ordered, np.maximum(k_stamps, info.min + window_ns) - window_ns, side="left")
+    hi = np.searchsorted(ordered, np.minimum(k_stamps, info.max - window_ns) + window_ns, side="right")
     for j in np.flatnonzero(unique & (hi - lo <= _MAX_WINDOW_SCANS)).tolist():
         ranges = k_ranges[j]
         best, best_err = -1, np.inf

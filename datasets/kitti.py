@@ -10,6 +10,11 @@ Nothing heavy is read up front: ``clouds`` load one frame per access, and ``scan
 ``InputConfig.cloud_*`` height band of each cloud turned into a planar scan by
 :func:`datasets.cloud.cloud_to_scan`) are computed on first access and the last few kept, so a
 4,541-frame sequence costs its stamps until scans are asked for.
+
+Bad side files are a KittiError naming the file and line: times that are not decimal seconds or lie beyond
+the years 1740-2200 (``datasets.validate.MAX_STAMP_NS``, also for 10 Hz stamps of large frame numbers),
+non-finite numbers, a singular ``Tr``, Velodyne-frame poses that overflow or lie beyond
+``datasets.validate.MAX_COORDINATE_M``. A frame with non-finite values fails when it is loaded.
 """
 
 from __future__ import annotations
@@ -24,8 +29,9 @@ from numpy.typing import NDArray
 from datasets.cloud import cloud_to_scan
 from datasets.config import InputConfig
 from datasets.errors import DatasetError
-from datasets.stamps import decimal_to_ns
+from datasets.stamps import StampRangeError, decimal_to_ns
 from datasets.types import CloudSequence, PointCloud, Recording, ScanSequence, Trajectory, beam_angles_rad
+from datasets.validate import MAX_COORDINATE_M, MAX_STAMP_NS
 
 FRAME_ID = "velodyne"
 DEFAULT_PERIOD_NS = 100_000_000  # 10 Hz, the Velodyne HDL-64E rate of KITTI
@@ -61,9 +67,15 @@ def read_kitti(path: str | Path, cfg: InputConfig | None = None) -> Recording:
         stamps = all_stamps[index]
         meta["times_file"] = times_file.name
     else:
+        late = np.flatnonzero(index > MAX_STAMP_NS // DEFAULT_PERIOD_NS)
+        if late.size:
+            raise KittiError(
+                f"{frames[late[0]]}: frame number {index[late[0]]} at 10 Hz is beyond the year 2200 "
+                "(add a times.txt)"
+            )
         stamps = index * DEFAULT_PERIOD_NS
         meta["times_file"] = None
-    bad = np.flatnonzero(np.diff(stamps) <= 0)
+    bad = np.flatnonzero(stamps[1:] <= stamps[:-1])  # not np.diff: it can overflow int64
     if bad.size:
         where = times_file or folder
         raise KittiError(
@@ -81,7 +93,21 @@ def read_kitti(path: str | Path, cfg: InputConfig | None = None) -> Recording:
         velo_in_cam = _read_tr(calib)
         cam_poses = _read_poses(poses_file)
         _check_covered(poses_file, len(cam_poses), index, "poses")
-        poses_se3 = np.linalg.inv(velo_in_cam) @ cam_poses[index] @ velo_in_cam
+        try:
+            cam_in_velo = np.linalg.inv(velo_in_cam)
+        except np.linalg.LinAlgError:
+            raise KittiError(f"{calib}: Tr is singular (not a rigid transform)") from None
+        with np.errstate(all="ignore"):  # huge values overflow to inf / NaN, rejected below
+            poses_se3 = cam_in_velo @ cam_poses[index] @ velo_in_cam
+        usable = np.isfinite(poses_se3).all(axis=(1, 2)) & (
+            np.abs(poses_se3[:, :2, 3]) <= MAX_COORDINATE_M
+        ).all(axis=1)
+        if not usable.all():
+            k = int(np.flatnonzero(~usable)[0])
+            raise KittiError(
+                f"{poses_file}: line {index[k] + 1}: the pose in the Velodyne frame (with Tr of "
+                f"{calib.name}) is not finite or beyond {MAX_COORDINATE_M:g} m"
+            )
         xy_yaw = np.stack(
             [poses_se3[:, 0, 3], poses_se3[:, 1, 3], np.arctan2(poses_se3[:, 1, 0], poses_se3[:, 0, 0])],
             axis=1,
@@ -137,7 +163,9 @@ class _LazyRanges:
     def __len__(self) -> int:
         return len(self._clouds)
 
-    def __getitem__(self, i: int) -> NDArray[np.float32]:
+    def __getitem__(self, i: int | slice) -> NDArray[np.float32] | list[NDArray[np.float32]]:
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
         i = int(i)
         if i < 0:
             i += len(self)
@@ -191,7 +219,12 @@ class CloudScans(ScanSequence):
 
 def _frame_index(frame: Path, position: int) -> int:
     """The frame number of ``000123.bin`` (its line in times / poses files); position if not a number."""
-    return int(frame.stem) if frame.stem.isdigit() else position
+    stem = frame.stem
+    if not (stem.isascii() and stem.isdigit()):
+        return position
+    if len(stem.lstrip("0")) > 15:
+        raise KittiError(f"{frame}: frame number {stem} is out of range")
+    return int(stem)
 
 
 def _side_file(folder: Path, prefix: str) -> Path | None:
@@ -225,9 +258,17 @@ def _read_times(path: Path) -> NDArray[np.int64]:
                 f"{path}: line {number}: expected one time in seconds, found {len(fields)} fields"
             )
         try:
-            out.append(decimal_to_ns(fields[0]))
+            stamp_ns = decimal_to_ns(fields[0])
+        except StampRangeError:
+            stamp_ns = MAX_STAMP_NS + 1
         except (ValueError, OverflowError):
             raise KittiError(f"{path}: line {number}: '{fields[0]}' is not a time in seconds") from None
+        if abs(stamp_ns) > MAX_STAMP_NS:
+            raise KittiError(
+                f"{path}: line {number}: time '{fields[0]}' s is out of range (after the year 2200 or "
+                "as far before 1970)"
+            )
+        out.append(stamp_ns)
     return np.array(out, dtype=np.int64)
 
 

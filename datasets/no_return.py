@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+_MAX_READING_M = 1e9  # readings at or beyond this are not compared (no laser reaches 1e6 km)
+
 
 @dataclass(frozen=True)
 class RepeatedMaximum:
@@ -46,7 +48,7 @@ def repeated_maximum_m(
     first value that is not a no-return value and has more than ``tail_share`` of the readings above it.
     """
     r = np.asarray(ranges_m, dtype=np.float64).ravel()
-    r = r[np.isfinite(r) & (r > 0)]
+    r = r[np.isfinite(r) & (r > 0) & (r < _MAX_READING_M)]  # beyond: damage, and 1-mm bins overflow int64
     if r.size == 0:
         return None
     mm, counts = np.unique(np.round(r * 1000.0).astype(np.int64), return_counts=True)

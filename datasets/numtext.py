@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from datasets.stamps import decimal_to_ns
+from datasets.stamps import StampRangeError, decimal_to_ns
 
 _CHUNK_BYTES = 1 << 18
 _POW10 = 10 ** np.arange(19, dtype=np.int64)
@@ -142,10 +142,12 @@ def parse_stamps_ns(blob: bytes) -> NDArray[np.int64]:
         stamps[negative] *= -1
         slow = np.flatnonzero(~fast)
         for i, tok in zip(slow.tolist(), _tokens(chunk, starts, slow), strict=True):
+            text = tok.decode("ascii", "replace")
             try:
                 stamps[i] = decimal_to_ns(tok)
+            except StampRangeError as exc:
+                raise NumberParseError(offset + i, text, str(exc)) from None
             except (ValueError, OverflowError):
-                text = tok.decode("ascii", "replace")
                 raise NumberParseError(
                     offset + i, text, f"'{text}' is not a finite decimal number of seconds"
                 ) from None

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from datasets.errors import DatasetError
-from datasets.stamps import NS_PER_S, decimal_to_ns, ns_to_decimal
+from datasets.stamps import NS_PER_S, StampRangeError, decimal_to_ns, ns_to_decimal
 
 FIELDS = "t1 t2 x y z roll pitch yaw"
 
@@ -93,13 +93,7 @@ def read_relations(path: str | Path) -> Relations:
             continue
         if len(toks) != 8:
             raise RelationsError(f"{path}: line {number}: expected 8 fields ({FIELDS}), found {len(toks)}")
-        try:
-            t1, t2 = decimal_to_ns(toks[0]), decimal_to_ns(toks[1])
-        except (ValueError, OverflowError):
-            bad = next(t for t in toks[:2] if not _is_stamp(t))
-            raise RelationsError(
-                f"{path}: line {number}: timestamp '{bad}' is not a decimal number"
-            ) from None
+        t1, t2 = (_stamp(path, number, tok) for tok in toks[:2])
         row = []
         for tok in toks[2:]:
             try:
@@ -118,12 +112,16 @@ def read_relations(path: str | Path) -> Relations:
     return Relations(np.array(s1, np.int64), np.array(s2, np.int64), v[:, :3], v[:, 3:])
 
 
-def _is_stamp(token: str) -> bool:
+def _stamp(path: Path, number: int, token: str) -> int:
+    """Exact nanoseconds of one timestamp field; RelationsError naming the line if it is not one."""
     try:
-        decimal_to_ns(token)
+        return decimal_to_ns(token)
+    except StampRangeError:
+        raise RelationsError(
+            f"{path}: line {number}: timestamp '{token}' is out of range (int64 nanoseconds, +-292 years)"
+        ) from None
     except (ValueError, OverflowError):
-        return False
-    return True
+        raise RelationsError(f"{path}: line {number}: timestamp '{token}' is not a decimal number") from None
 
 
 def _stamp_text(stamp_ns: int) -> str:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from bisect import bisect_left
 from collections.abc import Sequence
-from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
+from decimal import ROUND_HALF_EVEN, Decimal, localcontext
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,19 +21,56 @@ def decimal_to_ns(text: bytes | str) -> int:
     """Integer nanoseconds of a decimal number of seconds (``b"12.5"`` -> 12_500_000_000), exactly.
 
     Digits beyond the ninth decimal are rounded half to even. Accepts a sign and an exponent
-    (``8.97771e-67``). Raises ValueError for anything that is not a finite decimal number.
+    (``8.97771e-67``). Raises ValueError for anything that is not a finite decimal number, and
+    StampRangeError (a ValueError) for a number of nanoseconds that does not fit an int64 (``1e30``).
     """
     s = text.decode("ascii", "replace") if isinstance(text, bytes) else text
     whole, dot, frac = s.partition(".")
     if s.isascii() and whole.isdigit() and (not dot or (frac.isdigit() and len(frac) <= 9)):
-        return int(whole) * NS_PER_S + (int(frac.ljust(9, "0")) if dot else 0)
+        if len(whole) <= 9:  # the common case: no range check needed
+            return int(whole) * NS_PER_S + (int(frac.ljust(9, "0")) if dot else 0)
+        digits = whole.lstrip("0")  # int() refuses more than 4300 digits, leading zeros included
+        if len(digits) > _MAX_WHOLE_DIGITS:
+            raise StampRangeError(s)
+        return _checked(s, int(digits or "0") * NS_PER_S + (int(frac.ljust(9, "0")) if dot else 0))
     try:
         value = Decimal(s)
-    except InvalidOperation:
-        raise ValueError(f"'{s}' is not a decimal number") from None
-    if not value.is_finite():
-        raise ValueError(f"'{s}' is not a finite number")
-    return int(value.scaleb(9).quantize(Decimal(1), rounding=ROUND_HALF_EVEN))
+        if not value.is_finite():
+            raise ValueError(f"'{_shortened(s)}' is not a finite number")
+        if value and value.adjusted() > _MAX_WHOLE_DIGITS:  # > 1e11 s: int64 ns end near 9.2e9 s
+            raise StampRangeError(s)
+        with localcontext() as ctx:
+            ctx.prec = 40
+            ns = int(value.scaleb(9).quantize(Decimal(1), rounding=ROUND_HALF_EVEN))
+    except ArithmeticError:  # decimal.InvalidOperation, decimal.Overflow: not a usable decimal
+        raise ValueError(f"'{_shortened(s)}' is not a decimal number") from None
+    return _checked(s, ns)
+
+
+_MAX_WHOLE_DIGITS = 11
+_INT64_MAX = (1 << 63) - 1
+_INT64_MIN = -(1 << 63)
+
+
+class StampRangeError(ValueError):
+    """A finite decimal number of seconds whose nanoseconds do not fit an int64 (beyond +-292 years)."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__(
+            f"'{_shortened(text)}' is out of range for a timestamp (int64 nanoseconds, +-292 years)"
+        )
+
+
+def _shortened(text: str, limit: int = 40) -> str:
+    """``text`` cut to about ``limit`` characters for a message."""
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _checked(text: str, ns: int) -> int:
+    """``ns`` if it fits an int64, else StampRangeError."""
+    if not _INT64_MIN <= ns <= _INT64_MAX:
+        raise StampRangeError(text)
+    return ns
 
 
 class StampParseError(ValueError):
@@ -101,27 +138,33 @@ def monotone_stamps_ns(stamps_ns: NDArray[np.int64]) -> tuple[NDArray[np.int64],
     """
     s = np.asarray(stamps_ns, dtype=np.int64)
     n = s.shape[0]
-    if n < 2 or np.all(np.diff(s) > 0):
+    if n < 2 or np.all(s[1:] > s[:-1]):  # not np.diff: it overflows int64 for stamps far apart
         return s.copy(), np.zeros(n, dtype=bool)
     keep = longest_increasing_mask(s)
+    # stamps far apart (a damaged or synthetic log) overflow int64 arithmetic: use Python ints there
+    wide = int(s.max()) - int(s.min()) >= 1 << 60
+    work = s.astype(object) if wide else s
     idx = np.arange(n, dtype=np.int64)
     kept_idx = idx[keep]
-    kept = s[keep]
-    step = int(np.median(np.diff(kept))) if kept.shape[0] > 1 else 1
+    kept = work[keep]
+    step = int(np.median(np.diff(kept.astype(np.float64)))) if kept.shape[0] > 1 else 1
     step = max(step, 1)
     # nearest kept neighbour before / after each record (as positions into kept_idx)
     after = np.searchsorted(kept_idx, idx, side="left")
     before = after - 1
-    out = s.copy()
+    out = work.copy()
     lost = ~keep
     inner = lost & (before >= 0) & (after < kept.shape[0])
     b, a = before[inner], after[inner]
     i0, i1 = kept_idx[b], kept_idx[a]
-    out[inner] = kept[b] + (kept[a] - kept[b]) * (idx[inner] - i0) // (i1 - i0)
+    pos = idx.astype(object) if wide else idx  # record positions in the arithmetic's type
+    out[inner] = kept[b] + (kept[a] - kept[b]) * (pos[inner] - i0) // (i1 - i0)
     head = lost & (before < 0)
-    out[head] = kept[0] - (kept_idx[0] - idx[head]) * step
+    out[head] = kept[0] - (kept_idx[0] - pos[head]) * step
     tail = lost & (after >= kept.shape[0])
-    out[tail] = kept[-1] + (idx[tail] - kept_idx[-1]) * step
+    out[tail] = kept[-1] + (pos[tail] - kept_idx[-1]) * step
     # guarantee strict increase even where kept neighbours are closer than one ns per record
-    out = idx + np.maximum.accumulate(out - idx)
+    out = pos + np.maximum.accumulate(out - pos)
+    if wide:  # re-stamped ends may leave int64: clip (the result may then not increase there)
+        out = np.array([min(max(int(v), _INT64_MIN), _INT64_MAX) for v in out], dtype=np.int64)
     return out, out != s

@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 class GridBaselineConfig(BaseModel):
     """The occupancy-grid baseline (Thrun et al. 2005 inverse sensor model)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     resolution_m: float = Field(0.1, gt=0, le=100, description="cell size of the baseline grid")
     p_occupied: float = Field(0.7, gt=0.5, lt=1, description="inverse sensor model: p(occ) at an endpoint")
@@ -29,7 +29,7 @@ class GridBaselineConfig(BaseModel):
 class SourceNoiseConfig(BaseModel):
     """Measurement noise of one laser (GPPOL): variances of its range and bearing readings."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     range_var_m2: float = Field(1e-4, ge=0, le=100, description="range variance (m^2)")
     bearing_var_rad2: float = Field(3e-6, ge=0, le=1, description="bearing variance (rad^2)")
@@ -38,7 +38,7 @@ class SourceNoiseConfig(BaseModel):
 class MappingConfig(BaseModel):
     """GP occupancy-map settings (paper defaults where the paper gives one)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     mapper: Literal["gppol", "gpfol"] = Field("gppol", description="GPPOL (uncertain inputs) or GPFOL")
     resolution_m: float = Field(0.1, gt=0, le=100, description="cell size of rendered maps")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import reprlib
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +16,15 @@ from pipeline.scale_config import ScaleConfig
 from slam.config import SlamConfig
 
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent / "default.yaml"
+#: The command-line option behind each override key of :func:`load_config` (``run`` / ``remap``), so that a
+#: bad value given on the command line is blamed on the option, not on the configuration file.
+CLI_OPTIONS: dict[str, str] = {
+    "input.scan_topic": "--scan-topic",
+    "input.odom_topic": "--odom-topic",
+    "mapping.resolution_m": "--resolution",
+    "mapping.mapper": "--mapper",
+    "scale.scheduler": "--scheduler",
+}
 
 
 class ExportConfig(BaseModel):
@@ -38,13 +48,48 @@ class Config(BaseModel):
     scale: ScaleConfig = Field(default_factory=ScaleConfig)
 
 
+def _one_line(text: str, limit: int = 200) -> str:
+    """``text`` on one line, shortened to about ``limit`` characters."""
+    flat = " ".join(str(text).split())
+    return flat if len(flat) <= limit else flat[: limit - 3] + "..."
+
+
+_SHORT_REPR = reprlib.Repr()
+_SHORT_REPR.maxlevel, _SHORT_REPR.maxstring, _SHORT_REPR.maxother = 3, 80, 80
+
+
+def _shown(value: object) -> str:
+    """A short one-line repr of a configuration value (bounded even for YAML alias bombs)."""
+    return _one_line(_SHORT_REPR.repr(value))
+
+
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    """One line saying where and what a YAML error is (``line 2, column 1: expected ...``)."""
+    mark, problem = getattr(exc, "problem_mark", None), getattr(exc, "problem", None)
+    if mark is not None and problem:
+        return _one_line(f"line {mark.line + 1}, column {mark.column + 1}: {problem}")
+    return _one_line(str(exc)) or type(exc).__name__
+
+
 def _format_validation_error(source: str, error: ValidationError) -> str:
     first = error.errors()[0]
     where = ".".join(str(p) for p in first["loc"]) or "(root)"
     if first["type"] == "extra_forbidden":
-        return f"{source}: unknown configuration key '{where}'"
+        return f"{source}: unknown configuration key '{_one_line(where)}'"
     value = first.get("input")
-    return f"{source}: invalid value {value!r} for '{where}': {first['msg']}"
+    shown, msg = _shown(value), _one_line(first["msg"])
+    return f"{source}: invalid value {shown} for '{_one_line(where)}': {msg}"
+
+
+def _overridden_key(error: ValidationError, overrides: dict[str, dict[str, Any]]) -> str | None:
+    """The dotted key (``"mapping.resolution_m"``) of an override that the first error is about, else None."""
+    loc = error.errors()[0]["loc"]
+    if len(loc) < 2:
+        return None
+    stage, key = str(loc[0]), str(loc[1])
+    if (overrides.get(stage) or {}).get(key) is None:
+        return None
+    return f"{stage}.{key}"
 
 
 def config_from_dict(data: dict[str, Any], source: str = "config") -> Config:
@@ -58,19 +103,29 @@ def config_from_dict(data: dict[str, Any], source: str = "config") -> Config:
 def load_config(path: str | Path | None = None, overrides: dict[str, dict[str, Any]] | None = None) -> Config:
     """Load ``path`` (default: ``pipeline/default.yaml``) and apply per-stage ``overrides``.
 
-    ``overrides`` is ``{"stage": {"key": value}}``, e.g. from command-line options.
+    ``overrides`` is ``{"stage": {"key": value}}``, e.g. from command-line options (None values are not
+    applied); a bad override value is blamed on its command-line option (:data:`CLI_OPTIONS`), a bad value
+    of the file on the file. Any unreadable, non-UTF-8 or malformed file is a ConfigError.
     """
     p = Path(path) if path is not None else DEFAULT_CONFIG_PATH
     try:
-        text = p.read_text()
+        text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError(f"{p}: no such configuration file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{p}: is a directory, not a configuration file") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{p}: not a UTF-8 text file (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})"
+        ) from None
     except OSError as exc:
-        raise ConfigError(f"{p}: cannot read configuration: {exc.strerror}") from None
+        raise ConfigError(f"{p}: cannot read configuration: {exc.strerror or exc}") from None
     try:
         data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{p}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        raise ConfigError(f"{p}: not valid YAML ({_yaml_problem(exc)})") from None
+    except RecursionError:
+        raise ConfigError(f"{p}: not a usable configuration (YAML nested too deeply)") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{p}: a configuration must be a mapping of stages, got {type(data).__name__}")
     for stage, values in (overrides or {}).items():
@@ -79,7 +134,18 @@ def load_config(path: str | Path | None = None, overrides: dict[str, dict[str, A
             raise ConfigError(f"{p}: section '{stage}' must be a mapping")
         section.update({k: v for k, v in values.items() if v is not None})
         data[stage] = section
-    return config_from_dict(data, str(p))
+    try:
+        return Config.model_validate(data)
+    except ValidationError as exc:
+        key = _overridden_key(exc, overrides or {})
+        if key is None:
+            raise ConfigError(_format_validation_error(str(p), exc)) from None
+        value = (overrides or {})[key.split(".")[0]][key.split(".")[1]]
+        first = exc.errors()[0]
+        option = CLI_OPTIONS.get(key, f"the override of '{key}'")
+        raise ConfigError(
+            f"{option} {_shown(value)}: invalid value for '{key}': {_one_line(first['msg'])}"
+        ) from None
 
 
 def config_to_yaml(config: Config) -> str:

@@ -10,7 +10,7 @@ SCHEDULER_PATTERN = r"^(local|(tcp|tls|ws|wss|inproc|ucx)://\S+)$"
 class ScaleConfig(BaseModel):
     """Tiled rendering and where it runs."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     tile_cells: int = Field(
         64, ge=8, le=4096, description="maps are rendered in tiles of this many cells a side (any size gives "

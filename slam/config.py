@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 class OdometryConfig(BaseModel):
     """Scan-to-submap odometry: every scan is registered against a local map of the recent scans."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     matcher: Literal["point_to_line", "kiss_icp"] = Field(
         "point_to_line",
@@ -149,7 +149,7 @@ class OdometryConfig(BaseModel):
 class LoopClosureConfig(BaseModel):
     """Loop-closure candidates, search and verification."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     enabled: bool = Field(True, description="search loop closures")
     min_separation_m: float = Field(20.0, ge=0, description="least travel between the two keyframes")
@@ -277,7 +277,7 @@ class LoopClosureConfig(BaseModel):
 class GraphConfig(BaseModel):
     """Pose-graph noise and solver."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     odometry_cov_scale: float = Field(
         0.5,
@@ -328,7 +328,7 @@ class GraphConfig(BaseModel):
 class CloudOdometryConfig(BaseModel):
     """3D inputs (point clouds): KISS-ICP odometry on the clouds as they are, and the ``Pose3`` graph."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     voxel_size_m: float | None = Field(
         None, gt=0, le=5, description="KISS-ICP voxel size; None: max_range_m / 100 (KISS-ICP's own default)"
@@ -366,7 +366,7 @@ class CloudOdometryConfig(BaseModel):
 class SlamConfig(BaseModel):
     """Odometry, keyframing, loop closure and pose-graph settings."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     keyframe_distance_m: float = Field(0.5, gt=0, description="new keyframe after this much travel")
     keyframe_rotation_rad: float = Field(0.5, gt=0, description="new keyframe after this much rotation")

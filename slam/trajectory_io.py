@@ -14,7 +14,9 @@ Readers raise :class:`TrajectoryFormatError` (a DatasetError: one line naming th
 
 from __future__ import annotations
 
+import math
 import os
+import re
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from datasets.errors import DatasetError
+from datasets.stamps import StampRangeError, decimal_to_ns
 from slam.graph import Edge
 
 FloatArray = NDArray[np.float64]
@@ -63,18 +66,45 @@ def _stamp_text(stamp_ns: int) -> str:
     return f"{sign}{s}.{ns:09d}"
 
 
-def _parse_stamp(text: str) -> int:
-    t = text.strip()
-    neg = t.startswith("-")
-    t = t.lstrip("+-")
-    if "e" in t.lower():
-        return round(float(text) * NS_PER_S)
-    whole, _, frac = t.partition(".")
-    if not (whole or frac) or not (whole.isdigit() or whole == "") or not (frac.isdigit() or frac == ""):
-        raise ValueError(text)
-    frac = (frac + "0" * 9)[:9]
-    value = int(whole or "0") * NS_PER_S + int(frac)
-    return -value if neg else value
+def _parse_stamp(path: Path, number: int, text: str) -> int:
+    """Exact nanoseconds of a stamp field in decimal seconds; TrajectoryFormatError naming the line."""
+    try:
+        return decimal_to_ns(text)
+    except StampRangeError:
+        raise TrajectoryFormatError(
+            f"{path}: line {number}: stamp '{text}' is out of range (int64 nanoseconds, +-292 years)"
+        ) from None
+    except ValueError:
+        raise TrajectoryFormatError(
+            f"{path}: line {number}: stamp '{text}' is not a decimal number"
+        ) from None
+
+
+def _finite_floats(path: Path, number: int, fields: list[str], what: str) -> list[float]:
+    """The float values of ``fields``; TrajectoryFormatError naming the line if one is not a finite number."""
+    out = []
+    for text in fields:
+        try:
+            value = float(text)
+        except ValueError:
+            raise TrajectoryFormatError(f"{path}: line {number}: {what} '{text}' is not a number") from None
+        if not math.isfinite(value):
+            raise TrajectoryFormatError(f"{path}: line {number}: {what} '{text}' is not finite")
+        out.append(value)
+    return out
+
+
+def _vertex_id(path: Path, number: int, text: str) -> int:
+    """A g2o vertex id (an int64); TrajectoryFormatError naming the line otherwise."""
+    if not _INT_RE.fullmatch(text):
+        raise TrajectoryFormatError(f"{path}: line {number}: vertex id '{text}' is not an integer")
+    value = int(text)
+    if not -(2**63) <= value < 2**63:
+        raise TrajectoryFormatError(f"{path}: line {number}: vertex id '{text}' is out of range (int64)")
+    return value
+
+
+_INT_RE = re.compile(r"[+-]?[0-9]{1,30}")
 
 
 # --------------------------------------------------------------------------------------------------- TUM
@@ -109,14 +139,17 @@ def read_tum(path: str | Path) -> tuple[NDArray[np.int64], FloatArray]:
             raise TrajectoryFormatError(
                 f"{path}: line {number}: expected 8 fields (t x y z qx qy qz qw), got {len(fields)}"
             )
+        t = _parse_stamp(path, number, fields[0])
         try:
-            t = _parse_stamp(fields[0])
             x, y, _z, qx, qy, qz, qw = (float(v) for v in fields[1:])
         except ValueError:
             raise TrajectoryFormatError(f"{path}: line {number}: not a number in {text!r}") from None
         if not all(np.isfinite([x, y, qx, qy, qz, qw])):
             raise TrajectoryFormatError(f"{path}: line {number}: NaN or infinite value")
-        yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+        with np.errstate(all="ignore"):  # a huge quaternion overflows to a NaN yaw, rejected below
+            yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+        if not np.isfinite(yaw):
+            raise TrajectoryFormatError(f"{path}: line {number}: quaternion too large for a yaw angle")
         stamps.append(t)
         poses.append((x, y, float(yaw)))
     return np.asarray(stamps, dtype=np.int64), np.asarray(poses, dtype=np.float64).reshape(-1, 3)
@@ -165,29 +198,28 @@ def read_g2o(path: str | Path) -> G2oGraph:
     ids: list[int] = []
     verts: list[tuple[float, float, float]] = []
     raw_edges: list[tuple[int, int, tuple[float, ...], int]] = []
-    fixed: list[int] = []
+    fixed: list[tuple[int, int]] = []  # (vertex id, line number)
     for number, line in enumerate(_read_lines(path), start=1):
         fields = line.split()
         if not fields or fields[0].startswith("#"):
             continue
         tag = fields[0]
-        try:
-            if tag == "VERTEX_SE2":
-                if len(fields) != 5:
-                    raise TrajectoryFormatError(f"{path}: line {number}: VERTEX_SE2 needs 4 values")
-                ids.append(int(fields[1]))
-                verts.append((float(fields[2]), float(fields[3]), float(fields[4])))
-            elif tag == "EDGE_SE2":
-                if len(fields) != 12:
-                    raise TrajectoryFormatError(f"{path}: line {number}: EDGE_SE2 needs 11 values")
-                vals = tuple(float(v) for v in fields[3:])
-                raw_edges.append((int(fields[1]), int(fields[2]), vals, number))
-            elif tag == "FIX":
-                fixed.extend(int(v) for v in fields[1:])
-            else:
-                raise TrajectoryFormatError(f"{path}: line {number}: unsupported g2o record {tag!r}")
-        except ValueError:
-            raise TrajectoryFormatError(f"{path}: line {number}: not a number in {line.strip()!r}") from None
+        if tag == "VERTEX_SE2":
+            if len(fields) != 5:
+                raise TrajectoryFormatError(f"{path}: line {number}: VERTEX_SE2 needs 4 values")
+            ids.append(_vertex_id(path, number, fields[1]))
+            x, y, theta = _finite_floats(path, number, fields[2:], "VERTEX_SE2 value")
+            verts.append((x, y, theta))
+        elif tag == "EDGE_SE2":
+            if len(fields) != 12:
+                raise TrajectoryFormatError(f"{path}: line {number}: EDGE_SE2 needs 11 values")
+            i, j = (_vertex_id(path, number, v) for v in fields[1:3])
+            vals = tuple(_finite_floats(path, number, fields[3:], "EDGE_SE2 value"))
+            raw_edges.append((i, j, vals, number))
+        elif tag == "FIX":
+            fixed.extend((_vertex_id(path, number, v), number) for v in fields[1:])
+        else:
+            raise TrajectoryFormatError(f"{path}: line {number}: unsupported g2o record {tag!r}")
     index = {v: k for k, v in enumerate(ids)}
     if len(index) != len(ids):
         raise TrajectoryFormatError(f"{path}: duplicate vertex ids")
@@ -200,16 +232,22 @@ def read_g2o(path: str | Path) -> G2oGraph:
             dtype=np.float64,
         )
         try:
-            cov = np.linalg.inv(info)
+            with np.errstate(all="ignore"):
+                cov = np.linalg.inv(info)
         except np.linalg.LinAlgError:
             raise TrajectoryFormatError(f"{path}: line {number}: singular information matrix") from None
+        if not np.all(np.isfinite(cov)):
+            raise TrajectoryFormatError(f"{path}: line {number}: information matrix with no finite inverse")
         kind = "odometry" if index[j] == index[i] + 1 else "loop"  # g2o does not say; consecutive ids
         edges.append(Edge(kind, index[i], index[j], np.array(vals[:3]), cov))
+    for vertex, number in fixed:
+        if vertex not in index:
+            raise TrajectoryFormatError(f"{path}: line {number}: FIX of unknown vertex {vertex}")
     return G2oGraph(
         np.asarray(ids, dtype=np.int64),
         np.asarray(verts, dtype=np.float64).reshape(-1, 3),
         tuple(edges),
-        tuple(fixed),
+        tuple(vertex for vertex, _ in fixed),
     )
 
 
