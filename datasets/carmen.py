@@ -45,7 +45,8 @@ monotone in real logs, so the rule is:
 - then, in both cases, the stamps of each kind are made strictly increasing
   (:func:`datasets.stamps.monotone_stamps_ns`: the longest increasing run keeps its stamps, the other
   records are re-stamped between their neighbours in line order); ``meta["restamped"]`` counts them
-  (intel.clf: 787 of 13,631 scans, 1,250 of 26,915 ODOM records).
+  (intel.clf: 787 of 13,631 scans, 1,250 of 26,915 ODOM records). A corrected log whose stamps cannot be
+  put in order within the usable years is stamped by line order (``meta["stamps_by_line_order"]``).
 
 To find the scans of a corrected keyframe log in its raw log use :func:`match_keyframe_scans` (or
 :func:`match_scans` for the indices alone; both in :mod:`datasets.keyframe_match`, re-exported here), not
@@ -137,7 +138,9 @@ def read_carmen(path: str | Path, cfg: InputConfig | None = None) -> Recording:
     laser = _parse_laser(path, kind, lines, rows_by_type[kind], cfg)
     if not corrected:
         _check_backsteps(path, kind, laser["ipc_ns"], laser["line_numbers"], jitter_ns, cfg)
-    scan_stamps, scan_restamped = _monotone(path, kind, laser["ipc_ns"])
+    scan_stamps, scan_restamped, line_order = _monotone(
+        path, kind, laser["ipc_ns"], laser["line_numbers"], corrected
+    )
 
     odometry = None
     odom_meta: dict = {}
@@ -146,7 +149,14 @@ def read_carmen(path: str | Path, cfg: InputConfig | None = None) -> Recording:
         odom = _parse_odom(path, lines, rows_by_type["ODOM"])
         if not corrected:
             _check_backsteps(path, "ODOM", odom["ipc_ns"], odom["line_numbers"], jitter_ns, cfg)
-        odom_stamps, restamped = _monotone(path, "ODOM", odom["ipc_ns"])
+        odom_stamps, restamped, odom_line_order = _monotone(
+            path, "ODOM", odom["ipc_ns"], odom["line_numbers"], corrected
+        )
+        if line_order or odom_line_order:  # one clock for every kind: line order
+            line_order = True
+            scan_stamps = laser["line_numbers"].astype(np.int64) * LINE_ORDER_STEP_NS
+            odom_stamps = odom["line_numbers"].astype(np.int64) * LINE_ORDER_STEP_NS
+            scan_restamped, restamped = np.ones(len(scan_stamps), bool), np.ones(len(odom_stamps), bool)
         odom_restamped = int(restamped.sum())
         odometry = Trajectory(odom_stamps, odom["poses_xytheta"], frame_id="odom")
         odom_meta = {
@@ -183,6 +193,7 @@ def read_carmen(path: str | Path, cfg: InputConfig | None = None) -> Recording:
         "line_numbers": laser["line_numbers"],
         "laser_poses_xytheta": laser["laser_xytheta"],
         "restamped": {"laser": int(scan_restamped.sum()), "odometry": odom_restamped},
+        "stamps_by_line_order": line_order,
         "odometry_is_corrected": corrected and odometry is not None,
         **odom_meta,
     }
@@ -563,17 +574,33 @@ def _laser_in_base(laser_xytheta: NDArray, base_xytheta: NDArray) -> NDArray[np.
     return offset
 
 
-def _monotone(path: Path, kind: str, stamps_ns: NDArray) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
-    """:func:`monotone_stamps_ns`, and CarmenError when the re-stamped records leave the usable years."""
+#: Stamp spacing of the records of a corrected log whose stamps carry no time at all (ns per line).
+LINE_ORDER_STEP_NS = 100_000_000
+
+
+def _monotone(
+    path: Path, kind: str, stamps_ns: NDArray, line_numbers: NDArray, corrected: bool
+) -> tuple[NDArray[np.int64], NDArray[np.bool_], bool]:
+    """:func:`monotone_stamps_ns` of one record kind; ``(stamps, restamped, by_line_order)``.
+
+    When re-stamping cannot put the records in order within the usable years (a log whose stamps are
+    nearly all one placeholder, as ``infinite-corridor-corrected.log`` with 1,937 of its 1,941 scans at
+    4.29497e+09 s), a corrected log is stamped by line order instead (line order is the truth there:
+    ``LINE_ORDER_STEP_NS`` per line, every record of every kind on one clock); a raw log, whose stamps
+    associate odometry with scans, is then a CarmenError.
+    """
     stamps, restamped = monotone_stamps_ns(stamps_ns)
     if stamps.size and (
         np.any(stamps[1:] <= stamps[:-1]) or max(abs(int(stamps[0])), abs(int(stamps[-1]))) > MAX_STAMP_NS
     ):
+        if corrected:
+            by_line = np.asarray(line_numbers, dtype=np.int64) * LINE_ORDER_STEP_NS
+            return by_line, np.ones(stamps.shape[0], dtype=bool), True
         raise CarmenError(
             f"{path}: the {kind} timestamps cannot be put in order within the years 1740-2200 "
             f"({int(restamped.sum())} records re-stamped): the stamps are damaged"
         )
-    return stamps, restamped
+    return stamps, restamped, False
 
 
 def _check_backsteps(

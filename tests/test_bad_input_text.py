@@ -405,3 +405,32 @@ def test_keyframe_match_stamps_near_int64_limit(tmp_path: Path) -> None:
     kf = _write(tmp_path / "kf.gfs.log", flaser("1.1", "4 5 6", logger=far) + "\n")
     result = match_keyframe_scans(read_carmen(kf), read_carmen(raw))
     assert result.indices.tolist() == [1] and result.methods.tolist() == ["stamp"]
+
+
+# ------------------------------------------------------------------------------ placeholder stamps
+
+PLACEHOLDER = ["-0.445999", "-0.913", "-1.343", "-1.82"] + ["4.29497e+09"] * 6  # infinite-corridor's
+
+
+def test_corrected_log_with_placeholder_stamps_is_stamped_by_line_order(tmp_path: Path) -> None:
+    """Stamps that no re-stamping can order within the usable years: a corrected log takes line order."""
+    text = "".join(flaser(s) + "\n" + f"ODOM 1 2 0.5 0 0 0 {s} host {s}\n" for s in PLACEHOLDER)
+    rec = read_carmen(_write(tmp_path / "x-corrected.log", text))
+    validate_recording(rec)
+    assert rec.meta["stamps_by_line_order"] and rec.meta["restamped"]["laser"] == len(PLACEHOLDER)
+    np.testing.assert_array_equal(rec.scans.stamps_ns, np.arange(1, 20, 2) * 100_000_000)  # lines 1, 3, ...
+    np.testing.assert_array_equal(rec.odometry.stamps_ns, np.arange(2, 21, 2) * 100_000_000)
+
+
+def test_raw_log_with_placeholder_stamps_is_an_error(tmp_path: Path) -> None:
+    path = _write(tmp_path / "x.clf", "".join(flaser(s) + "\n" for s in PLACEHOLDER))
+    with pytest.raises(CarmenError) as err:
+        read_carmen(path, InputConfig(carmen_stamp_jitter_s=1e300))
+    _one_line(err, path, "cannot be put in order")
+
+
+def test_infinite_corridor_reads(data_dir: Path) -> None:
+    from datasets.registry import open_dataset
+
+    rec = open_dataset(data_dir / "radish-corrected" / "infinite-corridor-corrected.log.gz")
+    assert len(rec.scans) == 1941 and rec.meta["stamps_by_line_order"]
