@@ -8,17 +8,22 @@ decodes old bags whose embedded definitions no longer parse (``lsm-demo/demo_ind
 standard one). Other types are decoded with the definition embedded in the bag, checked against its hash.
 
 ROS1 bags whose index is damaged (``lsm-demo/demo.bag``) are read by :mod:`datasets.ros.chunkscan`.
-Every failure is a :class:`~datasets.errors.DatasetError` naming the file.
+Every failure is a :class:`~datasets.errors.DatasetError` naming the file: the library errors of
+:data:`BAG_IO_ERRORS`, connections whose fields have the wrong type (a damaged metadata.yaml or SQLite
+table), and an index that lists a message of another connection than the one asked for.
 """
 
 from __future__ import annotations
 
+import sqlite3
 import struct
-from collections.abc import Collection, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
+import apsw
 from rosbags import rosbag1, rosbag2
 from rosbags.interfaces import MessageDefinitionFormat
 from rosbags.serde import SerdeError
@@ -26,10 +31,12 @@ from rosbags.typesys import Stores, TypesysError, get_types_from_idl, get_types_
 from rosbags.typesys.store import Typestore
 
 from datasets.errors import DatasetError
-from datasets.ros.chunkscan import BagScanError, ChunkScanBag
+from datasets.ros.chunkscan import BagScanError, ChunkScanBag, first_overrun
 from datasets.ros.typestores import BagKind, standard_typestore
 
-# What a damaged or cut bag can make rosbags (or the decompressors under it) raise.
+# What a damaged or cut bag can make rosbags (or the decompressors and SQLite under it) raise. Only calls into
+# those libraries are guarded with it: a size field of 2^40 or 2^63 makes them allocate (MemoryError) or
+# overflow (OverflowError); a metadata.yaml or SQLite row of the wrong type gives TypeError / AttributeError.
 BAG_IO_ERRORS: tuple[type[BaseException], ...] = (
     rosbag1.ReaderError,
     rosbag2.ReaderError,
@@ -43,10 +50,19 @@ BAG_IO_ERRORS: tuple[type[BaseException], ...] = (
     EOFError,
     OSError,
     RuntimeError,
+    MemoryError,
+    OverflowError,
+    TypeError,
+    AttributeError,
+    apsw.Error,
+    sqlite3.Error,
 )
 
 
 def first_line(exc: BaseException) -> str:
+    """The first line of ``exc``'s message (its type name when empty, e.g. a bare MemoryError)."""
+    if isinstance(exc, MemoryError):
+        return "a size field asks for more memory than there is (MemoryError)"
     text = str(exc).strip() or type(exc).__name__
     return text.splitlines()[0]
 
@@ -70,6 +86,7 @@ class _Conn:
     msgdef_format: MessageDefinitionFormat
     msgdef: str
     handle: Any  # the reader's own connection object (or id)
+    key: int  # the connection id, as the reader reports it with each message
 
 
 @dataclass
@@ -96,12 +113,31 @@ class Bag:
         self, topics: Collection[str], start: int | None = None, stop: int | None = None
     ) -> Iterator[tuple[str, int, bytes]]:
         """``(topic, bag_time_ns, raw bytes)`` of ``topics`` in bag-time order."""
+        for conn, t, raw in self._raw_messages(topics, start, stop):
+            yield conn.topic, t, raw
+
+    def _raw_messages(
+        self, topics: Collection[str], start: int | None, stop: int | None
+    ) -> Iterator[tuple[_Conn, int, bytes]]:
+        """``(connection, bag_time_ns, raw bytes)``; every message must belong to a connection asked for.
+
+        A damaged index can point at the record of another connection (the reader then reports the
+        connection of the record itself): that is an error here, never a message decoded as the wrong type.
+        """
         conns = [c for c in self._conns if c.topic in topics]
         if not conns:
             return
+        by_key = {c.key: c for c in conns}
         try:
-            for conn, t, raw in self._reader.messages([c.handle for c in conns], start, stop):
-                yield conn.topic, t, raw
+            for handle, t, raw in self._reader.messages([c.handle for c in conns], start, stop):
+                conn = by_key.get(getattr(handle, "id", None))
+                if conn is None:
+                    other = getattr(handle, "topic", "?")
+                    raise DatasetError(
+                        f"{self.path}: corrupt bag index: it lists a message of topic {other} "
+                        f"under {', '.join(sorted({c.topic for c in conns}))}"
+                    )
+                yield conn, t, raw
         except DatasetError:
             raise
         except (*BAG_IO_ERRORS, BagScanError) as exc:
@@ -113,19 +149,23 @@ class Bag:
         self, topics: Collection[str], start: int | None = None, stop: int | None = None
     ) -> Iterator[tuple[str, int, Any]]:
         """``(topic, bag_time_ns, message)`` of ``topics`` in bag-time order, decoded."""
-        for topic, t, raw in self.raw_messages(topics, start, stop):
-            decode = self._decoder(topic)
+        for conn, t, raw in self._raw_messages(topics, start, stop):
+            msgtype = self.topics[conn.topic].msgtype
+            if conn.msgtype != msgtype:
+                raise DatasetError(
+                    f"{self.path}: topic {conn.topic} holds messages of two types ({msgtype}, {conn.msgtype})"
+                )
+            decode = self._decoder(conn)
             try:
                 msg = decode(raw)
             except BAG_IO_ERRORS as exc:
                 raise DatasetError(
-                    f"{self.path}: topic {topic}: a message cannot be decoded as "
-                    f"{self.topics[topic].msgtype} ({first_line(exc)})"
+                    f"{self.path}: topic {conn.topic}: a message cannot be decoded as "
+                    f"{msgtype} ({first_line(exc)})"
                 ) from None
-            yield topic, t, msg
+            yield conn.topic, t, msg
 
-    def _decoder(self, topic: str):
-        conn = next(c for c in self._conns if c.topic == topic)
+    def _decoder(self, conn: _Conn):
         key = (conn.msgtype, conn.digest)
         if key not in self._decoders:
             store = self._store_for(conn)
@@ -210,41 +250,129 @@ def _topics_of(conns: list[_Conn], counts: list[int]) -> dict[str, TopicInfo]:
     return topics
 
 
+def _short(value: object) -> str:
+    """``repr(value)`` cut to 60 characters (a damaged field can hold anything)."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _checked_conns(path: Path, raw: list[tuple[Any, ...]]) -> tuple[list[_Conn], list[int]]:
+    """``_Conn`` objects and message counts from ``(topic, msgtype, digest, format, msgdef, handle, key,
+    count)`` rows; a damaged metadata.yaml / SQLite table can hold any type there, so each is checked."""
+    conns, counts = [], []
+    for topic, msgtype, digest, fmt, msgdef, handle, key, count in raw:
+        if not isinstance(topic, str) or not topic:
+            raise DatasetError(f"{path}: corrupt bag: a topic name is {_short(topic)}, not a string")
+        if not topic.isprintable():
+            raise DatasetError(f"{path}: corrupt bag: topic name {_short(topic)} has control characters")
+        if not isinstance(msgtype, str) or not msgtype or not msgtype.isprintable():
+            raise DatasetError(f"{path}: corrupt bag: topic {topic} has message type {_short(msgtype)}")
+        if not isinstance(digest, str) or not isinstance(msgdef, str):
+            raise DatasetError(f"{path}: corrupt bag: topic {topic}: type hash or definition is not a string")
+        if not digest.isprintable():
+            raise DatasetError(f"{path}: corrupt bag: topic {topic} has type hash {_short(digest)}")
+        if not isinstance(fmt, MessageDefinitionFormat):
+            raise DatasetError(f"{path}: corrupt bag: topic {topic}: unknown definition format {_short(fmt)}")
+        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+            raise DatasetError(f"{path}: corrupt bag: topic {topic} has message count {_short(count)}")
+        if isinstance(key, bool) or not isinstance(key, int):
+            raise DatasetError(f"{path}: corrupt bag: topic {topic} has connection id {_short(key)}")
+        conns.append(_Conn(topic, msgtype, digest, fmt, msgdef, handle, key))
+        counts.append(count)
+    return conns, counts
+
+
+def _open_bag(path: Path, kind: BagKind, reader: Any, raw: list[tuple[Any, ...]]) -> Bag:
+    """A :class:`Bag` on the open ``reader``; the reader is closed when its connections are corrupt."""
+    try:
+        conns, counts = _checked_conns(path, raw)
+    except DatasetError:
+        try:
+            reader.close()
+        except (*BAG_IO_ERRORS, BufferError):
+            pass
+        raise
+    bag = Bag(path, kind, _topics_of(conns, counts), _conns=conns)
+    bag._reader = reader
+    return bag
+
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def mcap_overrun(path: Path) -> str | None:
+    """Where a record of the MCAP file at ``path`` declares more bytes than the file holds, or None.
+
+    A cheap walk over the top-level record lengths (opcode, u64 length), done before rosbags' reader, which
+    allocates whatever such a length asks for (2^40 bytes: MemoryError; 2^63: OverflowError).
+    """
+    size = path.stat().st_size
+    with path.open("rb") as fh:
+        if fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC or size < 2 * len(MCAP_MAGIC):
+            return None  # not an MCAP file: the reader says so
+        pos, end = len(MCAP_MAGIC), size - len(MCAP_MAGIC)
+        while pos < end:
+            fh.seek(pos + 1)
+            raw = fh.read(8)
+            if len(raw) < 8 or pos + 9 > end:
+                return f"the record at byte {pos} is cut off"
+            (length,) = struct.unpack("<Q", raw)
+            if length > end - pos - 9:
+                return f"the record at byte {pos} declares {length} bytes, past the end of the file"
+            pos += 9 + length
+    return None
+
+
+@lru_cache(maxsize=256)
+def _cached_walk(walk: Callable[[Path], str | None], path: Path, size: int, mtime_ns: int) -> str | None:
+    return walk(path)
+
+
+def overrun_of(walk: Callable[[Path], str | None], path: Path) -> str | None:
+    """``walk(path)`` (:func:`mcap_overrun`, :func:`~datasets.ros.chunkscan.first_overrun`), remembered per
+    file version: a lazy cloud sequence reopens its bag for every cloud."""
+    st = path.stat()
+    return _cached_walk(walk, path, st.st_size, st.st_mtime_ns)
+
+
 def open_ros1(path: Path) -> Bag:
-    """Open a ROS1 bag; a damaged index falls back to scanning the chunks."""
+    """Open a ROS1 bag; a damaged index (or a record length running past the end) falls back to scanning the
+    chunks, which reads the bag exactly or says precisely what is wrong."""
     if not path.is_file():
         raise DatasetError(f"{path}: no such file" if not path.exists() else f"{path}: not a file")
-    reader = rosbag1.Reader(path)
     try:
-        reader.open()
-    except BAG_IO_ERRORS as strict_error:
+        # the strict reader allocates whatever a length field asks for: it is not given such a file
+        strict_error = overrun_of(first_overrun, path)
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read ({exc.strerror})") from None
+    if strict_error is None:
+        reader = rosbag1.Reader(path)
         try:
-            scanned = ChunkScanBag(path)
-        except BagScanError as exc:
-            if exc.truncated:
-                raise DatasetError(f"{path}: truncated ROS1 bag ({exc})") from None
-            raise DatasetError(
-                f"{path}: corrupt ROS1 bag ({exc}; strict reader: {first_line(strict_error)})"
-            ) from None
-        except OSError as exc:
-            raise DatasetError(f"{path}: cannot read ({exc.strerror})") from None
-        conns = [
-            _Conn(c.topic, c.msgtype, c.md5sum, MessageDefinitionFormat.MSG, c.msgdef, c.id)
-            for c in scanned.connections.values()
-        ]
-        counts = scanned.message_counts()
-        bag = Bag(path, "ros1", _topics_of(conns, [counts[c.handle] for c in conns]), _conns=conns)
-        bag._reader = scanned
-        bag.notes.append(
-            f"damaged index bypassed by scanning the chunks (strict reader: {first_line(strict_error)})"
-        )
-        bag.notes.extend(scanned.notes)
-        return bag
-    conns = [
-        _Conn(c.topic, c.msgtype, c.digest, c.msgdef.format, c.msgdef.data, c) for c in reader.connections
+            reader.open()
+        except BAG_IO_ERRORS as exc:
+            strict_error = first_line(exc)
+        else:
+            raw = [
+                (c.topic, c.msgtype, c.digest, c.msgdef.format, c.msgdef.data, c, c.id, c.msgcount)
+                for c in reader.connections
+            ]
+            return _open_bag(path, "ros1", reader, raw)
+    try:
+        scanned = ChunkScanBag(path)
+    except BagScanError as exc:
+        if exc.truncated:
+            raise DatasetError(f"{path}: truncated ROS1 bag ({exc})") from None
+        raise DatasetError(f"{path}: corrupt ROS1 bag ({exc}; strict reader: {strict_error})") from None
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read ({exc.strerror})") from None
+    counts = scanned.message_counts()
+    raw = [
+        (c.topic, c.msgtype, c.md5sum, MessageDefinitionFormat.MSG, c.msgdef, c.id, c.id, counts[c.id])
+        for c in scanned.connections.values()
     ]
-    bag = Bag(path, "ros1", _topics_of(conns, [c.handle.msgcount for c in conns]), _conns=conns)
-    bag._reader = reader
+    bag = _open_bag(path, "ros1", scanned, raw)
+    bag.notes.append(f"damaged index bypassed by scanning the chunks (strict reader: {strict_error})")
+    bag.notes.extend(scanned.notes)
     return bag
 
 
@@ -253,17 +381,22 @@ def open_ros2(path: Path) -> Bag:
     if not path.exists():
         raise DatasetError(f"{path}: no such file or directory")
     try:
+        for mcap in [path] if path.is_file() else sorted(path.glob("*.mcap")):
+            if mcap.suffix == ".mcap" and (overrun := overrun_of(mcap_overrun, mcap)) is not None:
+                where = "" if mcap == path else f"{mcap.name}: "
+                raise DatasetError(f"{path}: corrupt or unreadable ROS2 bag ({where}{overrun})")
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read ({exc.strerror})") from None
+    try:
         reader = rosbag2.Reader(path)
         reader.open()
+        raw = [
+            (c.topic, c.msgtype, c.digest or "", c.msgdef.format, c.msgdef.data, c, c.id, c.msgcount)
+            for c in reader.connections
+        ]
     except (*BAG_IO_ERRORS, FileNotFoundError) as exc:
         raise DatasetError(f"{path}: corrupt or unreadable ROS2 bag ({first_line(exc)})") from None
-    conns = [
-        _Conn(c.topic, c.msgtype, c.digest or "", c.msgdef.format, c.msgdef.data, c)
-        for c in reader.connections
-    ]
-    bag = Bag(path, "ros2", _topics_of(conns, [c.handle.msgcount for c in conns]), _conns=conns)
-    bag._reader = reader
-    return bag
+    return _open_bag(path, "ros2", reader, raw)
 
 
 def open_bag(path: Path, kind: BagKind) -> Bag:

@@ -19,6 +19,7 @@ import struct
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import lz4.frame
 from rosbags.rosbag1.reader import normalize as normalize_topic
@@ -35,6 +36,7 @@ MAGIC = b"#ROSBAG V2.0\n"
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
 _TIME = struct.Struct("<II")
+_DECOMPRESS_STEP = 1 << 24  # bytes decompressed per step: allocation follows the data, not a size field
 
 
 class BagScanError(Exception):
@@ -98,7 +100,8 @@ def _record(buf: bytes | mmap.mmap | memoryview, pos: int, end: int, where: str,
     (hlen,) = _U32.unpack_from(buf, pos)
     if pos + 4 + hlen + 4 > end:
         raise short(f"record header of {hlen} bytes runs past the end")
-    fields = _parse_fields(memoryview(buf)[pos + 4 : pos + 4 + hlen], f"{where} at byte {pos}")
+    # a copy, never a view: a view into the mmap would keep it from closing when this record is refused
+    fields = _parse_fields(bytes(buf[pos + 4 : pos + 4 + hlen]), f"{where} at byte {pos}")
     dpos = pos + 4 + hlen
     (dlen,) = _U32.unpack_from(buf, dpos)
     return fields, dpos + 4, dlen
@@ -119,22 +122,64 @@ def _connection(fields: dict[str, bytes], data: bytes | memoryview, where: str) 
         msgtype = info["type"].decode()
         md5 = info["md5sum"].decode()
         msgdef = info.get("message_definition", b"").decode()
-    except (KeyError, UnicodeDecodeError):
+    except (KeyError, IndexError, UnicodeDecodeError):
         raise BagScanError(f"{where}: connection record without topic, type or md5sum") from None
     return ScannedConnection(conn, topic, normalize_msgtype(msgtype), md5, msgdef)
 
 
-def _decompress(raw: bytes, compression: str, where: str) -> bytes:
+def _decompress(raw: bytes, compression: str, size: int, where: str) -> bytes:
+    """``raw`` decompressed; more than the declared ``size`` bytes is an error (never decompressed)."""
+    if compression == "none":
+        return raw
+    if compression == "bz2":
+        decompressor: Any = bz2.BZ2Decompressor()
+    elif compression == "lz4":
+        decompressor = lz4.frame.LZ4FrameDecompressor()
+    else:
+        raise BagScanError(f"{where}: unsupported compression '{compression}'")
+    parts: list[bytes] = []
+    total = 0
+    data = raw
     try:
-        if compression == "none":
-            return raw
-        if compression == "bz2":
-            return bz2.decompress(raw)
-        if compression == "lz4":
-            return lz4.frame.decompress(raw)
-    except (OSError, ValueError, RuntimeError) as exc:
+        while not decompressor.eof:
+            part = decompressor.decompress(data, max_length=min(size + 1 - total, _DECOMPRESS_STEP))
+            data = b""
+            parts.append(part)
+            total += len(part)
+            if total > size:
+                raise BagScanError(f"{where}: decompresses to more than the {size} bytes its header declares")
+            if not part and decompressor.needs_input:
+                raise BagScanError(f"{where}: {compression} data is cut off")
+    except (OSError, ValueError, RuntimeError, EOFError, MemoryError) as exc:
         raise BagScanError(f"{where}: {compression} data does not decompress ({exc})") from None
-    raise BagScanError(f"{where}: unsupported compression '{compression}'")
+    return b"".join(parts)
+
+
+def first_overrun(path: Path) -> str | None:
+    """Where a top-level record of the ROS1 bag at ``path`` declares more bytes than the file holds, or None.
+
+    A cheap walk over the record lengths (nothing else is read), done before the strict reader, which
+    allocates whatever a length field asks for (4 GiB from a damaged u32) before it finds the file shorter.
+    """
+    size = path.stat().st_size
+    with path.open("rb") as fh:
+        if fh.read(len(MAGIC)) != MAGIC:
+            return None  # not a bag at all: the readers say so
+        pos = len(MAGIC)
+        while pos < size:
+            fh.seek(pos)
+            head = fh.read(4)
+            if len(head) < 4:
+                return f"record at byte {pos}: its header length is cut off"
+            (hlen,) = _U32.unpack(head)
+            if pos + 4 + hlen + 4 > size:
+                return f"record at byte {pos}: its header of {hlen} bytes runs past the end of the file"
+            fh.seek(pos + 4 + hlen)
+            (dlen,) = _U32.unpack(fh.read(4))
+            if pos + 8 + hlen + dlen > size:
+                return f"record at byte {pos}: its data of {dlen} bytes runs past the end of the file"
+            pos += 8 + hlen + dlen
+    return None
 
 
 class ChunkScanBag:
@@ -159,11 +204,15 @@ class ChunkScanBag:
         try:
             self._scan()
         except BaseException:
-            self._buf.close()
+            self.close()
             raise
 
     def close(self) -> None:
-        self._buf.close()
+        """Release the file mapping (left to the garbage collector while a view of it is alive)."""
+        try:
+            self._buf.close()
+        except BufferError:
+            pass
 
     # -- scanning -------------------------------------------------------------------------------------
 
@@ -207,7 +256,9 @@ class ChunkScanBag:
                     self.notes.append(f"{where} declares {dlen} bytes for {count} entries; used {12 * count}")
                 pos = dpos + 12 * count
             elif op == OP_CONNECTION:
-                c = _connection(fields, memoryview(buf)[dpos : dpos + dlen], f"connection at byte {pos}")
+                if dpos + dlen > index_pos:
+                    raise BagScanError(f"connection at byte {pos}: its data runs into the index")
+                c = _connection(fields, buf[dpos : dpos + dlen], f"connection at byte {pos}")
                 self.connections.setdefault(c.id, c)
                 pos = dpos + dlen
             else:
@@ -251,7 +302,7 @@ class ChunkScanBag:
             fields, dpos, dlen = _record(buf, pos, size, "index connection", True)
             if dpos + dlen > size:
                 raise BagScanError(f"index connection at byte {pos} runs past the end", True)
-            c = _connection(fields, memoryview(buf)[dpos : dpos + dlen], f"index connection at byte {pos}")
+            c = _connection(fields, buf[dpos : dpos + dlen], f"index connection at byte {pos}")
             self.connections.setdefault(c.id, c)
             pos = dpos + dlen
         if len(self._chunks) != chunk_count:
@@ -280,7 +331,7 @@ class ChunkScanBag:
 
     def _chunk_data(self, chunk: _Chunk, where: str) -> bytes:
         raw = self._buf[chunk.data_pos : chunk.data_pos + chunk.data_len]
-        data = _decompress(raw, chunk.compression, where)
+        data = _decompress(raw, chunk.compression, chunk.size, where)
         if len(data) != chunk.size:
             raise BagScanError(f"{where}: {len(data)} bytes after decompression, header says {chunk.size}")
         return data

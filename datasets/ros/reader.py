@@ -24,10 +24,12 @@ global ground-truth topic, and per-namespace odometry goes to ``meta["odometry_b
 is a :class:`~datasets.errors.TopicError` that lists its topics.
 
 Bad input (SPEC section 8) raises one line naming the file: negative ranges, empty scans and header stamps
-going backwards within a topic name the topic and the message. ``inf`` and ``NaN`` ranges are accepted:
-REP 117 uses them for "no return" (and ``-inf`` for "too close"); a reading at or beyond the message's
-``range_max`` is none either. ``meta["no_return"]`` says so (``rule``, ``range_m``: the largest declared
-``range_max``), as the CARMEN reader's does.
+going backwards within a topic name the topic and the message; so do non-finite beam angles or range limits,
+non-finite poses or covariances, PointCloud2 layouts that do not fit their data, and tf rotations that are
+not unit quaternions (those within :data:`QUATERNION_NORM_TOLERANCE` of unit are normalised).
+``inf`` and ``NaN`` ranges are accepted: REP 117 uses them for "no return" (and ``-inf`` for "too close");
+a reading at or beyond the message's ``range_max`` is none either. ``meta["no_return"]`` says so (``rule``,
+``range_m``: the largest declared ``range_max``), as the CARMEN reader's does.
 """
 
 from __future__ import annotations
@@ -63,6 +65,9 @@ SCAN_POSE_SUFFIX = "_pose"  # scan poses of scan topic T are on T + "_pose"
 
 ALL_TOPICS = "all"
 NO_SCANS = "none"
+
+#: A tf rotation whose quaternion norm is within this of 1 is normalised; any other is refused.
+QUATERNION_NORM_TOLERANCE = 1e-2
 
 # sensor_msgs/PointField datatypes
 _POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -291,7 +296,20 @@ class _BagReading:
                     )
                 key = (float(msg.angle_min), float(msg.angle_increment), int(r.size))
                 if key not in angle_cache:
-                    angle_cache[key] = beam_angles_rad(*key)
+                    with np.errstate(invalid="ignore", over="ignore"):  # checked right below
+                        beams = beam_angles_rad(*key)
+                    if not np.isfinite(beams).all():
+                        raise DatasetError(
+                            f"{self.path}: topic {topic}: message {i} (stamp {stamp} ns) has non-finite beam "
+                            f"angles (angle_min {key[0]!r}, angle_increment {key[1]!r}, {key[2]} beams)"
+                        )
+                    angle_cache[key] = beams
+                limits = (float(msg.range_min), float(msg.range_max))
+                if not (np.isfinite(limits).all() and 0.0 <= limits[0] < limits[1]):
+                    raise DatasetError(
+                        f"{self.path}: topic {topic}: message {i} (stamp {stamp} ns) has range limits "
+                        f"[{limits[0]!r}, {limits[1]!r}] m (need finite, 0 <= range_min < range_max)"
+                    )
                 ranges.append(r)
                 angles.append(angle_cache[key])
                 stamps.append(stamp)
@@ -347,11 +365,23 @@ class _BagReading:
             frame = msg.header.frame_id
             pose = msg.pose if msgtype == POSE_STAMPED_TYPE else msg.pose.pose
             q = pose.orientation
+            xytheta = (float(pose.position.x), float(pose.position.y), yaw_of_quaternion(q.x, q.y, q.z, q.w))
+            if not np.isfinite(xytheta).all():
+                raise DatasetError(
+                    f"{self.path}: topic {topic}: message {i} (stamp {stamp} ns) has a non-finite pose "
+                    f"(x {xytheta[0]!r}, y {xytheta[1]!r}, yaw {xytheta[2]!r})"
+                )
             stamps.append(stamp)
-            poses.append((pose.position.x, pose.position.y, yaw_of_quaternion(q.x, q.y, q.z, q.w)))
+            poses.append(xytheta)
             if msgtype != POSE_STAMPED_TYPE:
                 c = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)
-                covs.append(c[np.ix_([0, 1, 5], [0, 1, 5])])
+                c = c[np.ix_([0, 1, 5], [0, 1, 5])]
+                if not np.isfinite(c).all():
+                    raise DatasetError(
+                        f"{self.path}: topic {topic}: message {i} (stamp {stamp} ns) has a non-finite "
+                        "pose covariance"
+                    )
+                covs.append(c)
         cov = np.asarray(covs) if covs and np.any(np.asarray(covs)) else None
         return Trajectory(
             np.asarray(stamps, dtype=np.int64), np.asarray(poses, dtype=np.float64).reshape(-1, 3), frame, cov
@@ -419,37 +449,85 @@ class _BagReading:
         return "base_link"
 
     def _laser_in_base(self, base: str, laser_frames: list[str]) -> list[NDArray | None]:
-        """(3,) x, y, yaw of each laser frame in ``base`` through tf, or None without a chain."""
+        """(3,) x, y, yaw of each laser frame in ``base`` through tf, or None without a chain.
+
+        A transform that :func:`_transform_matrix` refuses (a zero, NaN or non-unit rotation) is an error only
+        when the chain to a laser needs it; on ``/tf`` a later valid value of the same edge is used instead.
+        """
         edges: dict[tuple[str, str], NDArray] = {}
+        refused: dict[tuple[str, str], str] = {}  # edge -> the error, raised if a chain needs the edge
         for name in ("/tf_static", "/tf"):
             if name not in self.bag.topics or self.bag.topics[name].msgtype != TF_TYPE:
                 continue
             static = name == "/tf_static"
-            for _, _, msg in self.bag.messages([name]):
+            for i, (_, _, msg) in enumerate(self.bag.messages([name])):
                 for tr in msg.transforms:
                     key = (tr.header.frame_id.strip("/"), tr.child_frame_id.strip("/"))
                     if key in edges and not static:
                         continue
-                    edges[key] = _transform_matrix(tr.transform)
+                    where = (
+                        f"{self.path}: topic {name}: message {i}: transform "
+                        f"{_printable(key[0])} -> {_printable(key[1])}"
+                    )
+                    try:
+                        edges[key] = _transform_matrix(tr.transform, where)
+                        refused.pop(key, None)
+                    except DatasetError as exc:
+                        edges.pop(key, None)
+                        if static or key not in refused:
+                            refused[key] = str(exc)
         out: list[NDArray | None] = []
         for laser in laser_frames:
             m = _chain(edges, base, laser.strip("/"))
+            if m is None:
+                for key, error in refused.items():
+                    if _chain({**edges, key: np.eye(4)}, base, laser.strip("/")) is not None:
+                        raise DatasetError(error)
             out.append(None if m is None else np.array([m[0, 3], m[1, 3], np.arctan2(m[1, 0], m[0, 0])]))
         return out
 
 
-def _transform_matrix(tf: object) -> NDArray:
-    """4x4 homogeneous matrix of a ``geometry_msgs/Transform``."""
+def _printable(text: str) -> str:
+    """``text`` itself, or its ``repr`` when it holds control characters (messages stay one line)."""
+    return text if text.isprintable() else repr(text)
+
+
+def _transform_matrix(tf: object, where: str) -> NDArray:
+    """4x4 homogeneous matrix of a ``geometry_msgs/Transform``.
+
+    The rotation is normalised when its norm is within :data:`QUATERNION_NORM_TOLERANCE` of 1 (float32
+    rounding, sloppy publishers); a zero, non-finite or far from unit quaternion, or a non-finite
+    translation, is a :class:`~datasets.errors.DatasetError` (``where`` names the file, topic and frames).
+    """
     t, q = tf.translation, tf.rotation  # type: ignore[attr-defined]
-    x, y, z, w = q.x, q.y, q.z, q.w
+    quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+    trans = np.array([t.x, t.y, t.z], dtype=np.float64)
+    with np.errstate(over="ignore"):
+        norm = float(np.linalg.norm(quat)) if np.isfinite(quat).all() else float("nan")
+    if not abs(norm - 1.0) <= QUATERNION_NORM_TOLERANCE:
+        raise DatasetError(
+            f"{where}: rotation quaternion (x, y, z, w) = {quat.tolist()} is not a unit quaternion "
+            f"(norm {norm:.6g})"
+        )
+    if not np.isfinite(trans).all():
+        raise DatasetError(f"{where}: translation {trans.tolist()} is not finite")
+    x, y, z, w = quat / norm
     m = np.eye(4)
     m[:3, :3] = [
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
         [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
         [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
     ]
-    m[:3, 3] = [t.x, t.y, t.z]
+    m[:3, 3] = trans
     return m
+
+
+def _rigid_inverse(m: NDArray) -> NDArray:
+    """Inverse of a 4x4 rigid transform (rotation transposed; never singular)."""
+    inv = np.eye(4)
+    inv[:3, :3] = m[:3, :3].T
+    inv[:3, 3] = -m[:3, :3].T @ m[:3, 3]
+    return inv
 
 
 def _chain(edges: dict[tuple[str, str], NDArray], start: str, goal: str) -> NDArray | None:
@@ -459,7 +537,7 @@ def _chain(edges: dict[tuple[str, str], NDArray], start: str, goal: str) -> NDAr
     neighbours: dict[str, list[tuple[str, NDArray]]] = {}
     for (parent, child), m in edges.items():
         neighbours.setdefault(parent, []).append((child, m))
-        neighbours.setdefault(child, []).append((parent, np.linalg.inv(m)))
+        neighbours.setdefault(child, []).append((parent, _rigid_inverse(m)))
     frontier = [(start, np.eye(4))]
     seen = {start}
     while frontier:
@@ -489,21 +567,30 @@ def cloud_points(msg: object, where: str) -> tuple[NDArray[np.float32], NDArray[
     endian = ">" if msg.is_bigendian else "<"  # type: ignore[attr-defined]
     names = ["x", "y", "z"] + (["intensity"] if "intensity" in fields else [])
     formats, offsets = [], []
+    step = int(msg.point_step)  # type: ignore[attr-defined]
+    width, height, row_step = int(msg.width), int(msg.height), int(msg.row_step)  # type: ignore[attr-defined]
     for n in names:
         f = fields[n]
         if f.datatype not in _POINT_FIELD_TYPES:
             raise DatasetError(f"{where}: field {n} has unknown datatype {f.datatype}")
         formats.append(endian + _POINT_FIELD_TYPES[f.datatype])
-        offsets.append(f.offset)
-    step = int(msg.point_step)  # type: ignore[attr-defined]
-    width, height, row_step = int(msg.width), int(msg.height), int(msg.row_step)  # type: ignore[attr-defined]
-    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
+        offsets.append(int(f.offset))
+        end = offsets[-1] + np.dtype(formats[-1]).itemsize
+        if end > step:
+            raise DatasetError(
+                f"{where}: field {n} (offset {offsets[-1]}, {end - offsets[-1]} bytes) does not fit in "
+                f"point_step {step}"
+            )
     data = np.asarray(msg.data, dtype=np.uint8)  # type: ignore[attr-defined]
     if step * width > row_step or data.size < row_step * height:
         raise DatasetError(
             f"{where}: point cloud data of {data.size} bytes does not hold {height} rows of {width} points "
             f"(point_step {step}, row_step {row_step})"
         )
+    if width == 0 or height == 0:  # no points (and point_step is then bounded by nothing: no dtype from it)
+        return np.zeros((0, 3), np.float32), (np.zeros(0, np.float32) if "intensity" in names else None)
+    # here point_step <= row_step <= the data's size: the dtype's size comes from the data, not a field alone
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
     rows = data[: row_step * height].reshape(height, row_step)[:, : step * width]
     arr = np.ascontiguousarray(rows).view(dtype).reshape(-1)
     pts = np.stack([arr["x"], arr["y"], arr["z"]], axis=1).astype(np.float32)
