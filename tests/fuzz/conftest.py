@@ -19,7 +19,7 @@ settings.register_profile(
 )
 settings.register_profile(
     "long",
-    max_examples=int(os.environ.get("GPOM_FUZZ_EXAMPLES", "3000")),
+    max_examples=int(os.environ.get("GPOM_FUZZ_EXAMPLES", "6000")),
     deadline=None,
     suppress_health_check=_SLOW_OK,
 )
