@@ -162,7 +162,7 @@ class DaskEngine:
             self._quiet = None
 
     def __call__(self, job: RenderJob, tiles: Iterable[int]) -> Iterator[TileResult]:
-        from distributed import as_completed
+        from distributed import KilledWorker, as_completed
 
         if self.client is None:
             raise RuntimeError("DaskEngine must be used inside a 'with' block")
@@ -175,7 +175,14 @@ class DaskEngine:
         )
         try:
             for fut in as_completed(futures):
-                yield fut.result()
+                try:
+                    result = fut.result()
+                except KilledWorker as exc:  # a worker died (out of memory, killed) on this tile, repeatedly
+                    raise PipelineError(
+                        f"Dask workers died rendering a map tile ({' '.join(str(exc).split())[:200]}): "
+                        "give them more memory, or render in this process"
+                    ) from None
+                yield result
         finally:
             self.client.cancel([*futures, shared])
 

@@ -72,3 +72,25 @@ def test_unreachable_scheduler_is_one_clear_error() -> None:
     with pytest.raises(PipelineError, match=r"cannot reach the Dask scheduler 'tcp://127\.0\.0\.1:9'"):
         with tile_engine(ScaleConfig(scheduler="tcp://127.0.0.1:9", connect_timeout_s=1)):
             pass
+
+
+class DyingFactory:
+    """A map factory whose worker process dies (as one killed for memory would)."""
+
+    def __call__(self, beams, cov_xytheta):
+        import os
+
+        os._exit(3)
+
+
+def test_a_worker_that_dies_is_one_clear_error() -> None:
+    import dask
+
+    beams = make(*corridor_scans())
+    cfg = MappingConfig(mapper="gpfol")
+    grid = TileGrid.from_bounds((0.0, 0.0, 60.0, 20.0), 0.2, 32)
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        with tile_engine(ScaleConfig(scheduler="local", workers=1, threads_per_worker=1)) as engine:
+            doomed = IncrementalMap(beams, grid, DyingFactory(), cfg.k_occupied, cfg.k_free, renderer=engine)
+            with pytest.raises(PipelineError, match=r"Dask workers died rendering a map tile \(.*\): give"):
+                doomed.render_all()
