@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from datasets.types import ScanSequence
 from pipeline.errors import PipelineError
-from slam.system import SlamResult
+from slam.result import SlamResult
 from slam.trajectory_io import TrajectoryFormatError, write_g2o, write_tum
 
 TRAJECTORY_DIR = "trajectory"

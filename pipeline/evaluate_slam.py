@@ -37,7 +37,8 @@ from pipeline.errors import PipelineError
 from pipeline.progress import Progress
 from slam import geometry as se2
 from slam import metrics
-from slam.system import SlamResult, run_slam_recording
+from slam.result import SlamResult
+from slam.system import run_slam_recording
 
 STAMP_TOLERANCE_NS = 50_000_000  # 50 ms: a relation stamp farther from every scan stamp is not matched
 

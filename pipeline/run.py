@@ -31,7 +31,8 @@ from pipeline.progress import Progress
 from pipeline.run_folder import check_output_dir, staged_run_folder, write_summary
 from pipeline.scale import engine_name, tile_engine, tiled_map
 from slam.metrics import ate_rmse
-from slam.system import SlamResult, run_slam_recording
+from slam.result import SlamResult
+from slam.system import run_slam_recording
 from slam.trajectory_io import read_tum
 
 MAP_MARGIN_M = 1.0

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from slam import geometry as se2
 from slam import metrics
-from slam.system import SlamResult
+from slam.result import SlamResult
 
 
 def plot_before_after(

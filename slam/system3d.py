@@ -17,7 +17,7 @@ covariances that the 2D mapper uses with the height-band scans (``Recording.scan
   with the prediction (6-dof chi2); accepted closures enter with a robust (Cauchy) loss.
 - The batch optimisation (Levenberg-Marquardt) and the marginals of every keyframe.
 
-The result is a :class:`slam.system.SlamResult` like the 2D one (SE(2) projections in its 2D fields), with
+The result is a :class:`slam.result.SlamResult` like the 2D one (SE(2) projections in its 2D fields), with
 ``poses_before_se3`` / ``poses_after_se3`` (N, 4, 4) and ``cov_after_se3`` (N, 6, 6) world-frame
 ``(x, y, z, rx, ry, rz)``.
 """
@@ -46,6 +46,7 @@ from slam.graph3d import (
 )
 from slam.loop_closure import LoopClosure
 from slam.odometry import ProgressLike, stage
+from slam.result import SlamResult
 
 FloatArray = NDArray[np.float64]
 PRIOR_SIGMAS = np.array([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-3])  # (omega, v)
@@ -203,8 +204,7 @@ def run_slam_clouds(
     clouds: CloudSequence, config: SlamConfig | None = None, progress: ProgressLike | None = None
 ):
     """KISS-ICP odometry, ``Pose3`` graph with loop closures, marginals and SE(2) projections for the
-    clouds of one recording. Returns a :class:`slam.system.SlamResult` (see the module docstring)."""
-    from slam.system import SlamResult
+    clouds of one recording. Returns a :class:`slam.result.SlamResult` (see the module docstring)."""
 
     cfg = (config or SlamConfig()).cloud
     timings: dict[str, float] = {}
