@@ -30,6 +30,7 @@ import numba
 import numpy as np
 
 from datasets.errors import DatasetError
+from datasets.paths import SHARED_DATA_DIR
 from mapping.core import gather_batch
 from mapping.gpmap import GPOccupancyMap, grid_centres, tile_order
 from pipeline.config import load_config
@@ -37,7 +38,7 @@ from pipeline.evaluate_map import make_beams, reference_base_poses
 from pipeline.mapping_stage import build_gp_map, build_grid, fit_params, gaussian_inputs
 from pipeline.progress import Progress
 
-DATA_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+DATA_DIR = SHARED_DATA_DIR
 INTEL = "intel/intel.gfs.log"
 RESOLUTION_M = 0.1
 PERTURB_COV = np.diag([0.1**2, 0.1**2, 0.02**2])  # the Intel perturbation experiment's pose covariance

@@ -13,11 +13,12 @@ import time
 from pathlib import Path
 from typing import Any
 
+from datasets.paths import SHARED_DATA_DIR
 from pipeline.config import load_config
 from pipeline.progress import Progress
 from pipeline.run import run_pipeline
 
-INTEL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "intel" / "intel.clf.bz2"
+INTEL = SHARED_DATA_DIR / "intel" / "intel.clf.bz2"
 
 
 def bench_pipeline(progress: Progress | None = None, path: str | Path = INTEL) -> dict[str, Any]:

@@ -42,11 +42,12 @@ from typing import Any
 
 import numpy as np
 
+from datasets.paths import SHARED_DATA_DIR
 from pipeline.bench import peak_rss_mib
 from pipeline.progress import Progress
 
 ROOT = Path(__file__).resolve().parent.parent
-INTEL_CLF = ROOT.parent / "shared" / "data" / "intel" / "intel.clf.bz2"
+INTEL_CLF = SHARED_DATA_DIR / "intel" / "intel.clf.bz2"
 
 CITY_SIZE_M = 1000.0
 CITY_RESOLUTION_M = 0.1

@@ -22,12 +22,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from datasets.paths import SHARED_DATA_DIR
 from datasets.registry import open_dataset
 from pipeline.config import load_config
 from pipeline.progress import Progress
 from slam.system import run_slam
 
-DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+DATA = SHARED_DATA_DIR
 INTEL = DATA / "intel" / "intel.clf.bz2"
 FR079 = DATA / "fr079" / "fr079.clf.bz2"
 LOGS: tuple[tuple[str, Path], ...] = (("intel", INTEL), ("fr079", FR079))

@@ -50,6 +50,7 @@ from numpy.typing import NDArray
 from datasets.carmen import is_corrected_log
 from datasets.config import InputConfig
 from datasets.errors import TopicError, UnknownFormatError
+from datasets.paths import SHARED_DATA_DIR
 from datasets.registry import guess_format, open_dataset
 from datasets.types import Recording
 from mapping.config import MappingConfig
@@ -70,7 +71,7 @@ from slam.metrics import align_se2
 
 FloatArray = NDArray[np.float64]
 
-DEFAULT_DATA_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+DEFAULT_DATA_DIR = SHARED_DATA_DIR
 MAX_DEPTH = 2  # DIR, its sub-folders and theirs
 SIMULATED_WORLD = "loop"
 SIMULATED_SEEDS = (0, 1, 2)

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets.paths import SHARED_DATA_DIR
 from slam import geometry as se2
 from slam import metrics
 from slam.result import SlamResult
@@ -85,7 +86,7 @@ def _main(out_dir: Path) -> None:  # pragma: no cover - figure regeneration
     out_dir.mkdir(parents=True, exist_ok=True)
     cfg = SlamConfig()
     oc = cfg.odometry
-    data = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
+    data = SHARED_DATA_DIR
     raw = open_dataset(data / "intel" / "intel.clf.bz2")
     gfs = open_dataset(data / "intel" / "intel.gfs.log")
     idx = match_scans(gfs, raw)

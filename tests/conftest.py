@@ -6,8 +6,10 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parent.parent
-DATA = (REPO.parent / "shared" / "data").resolve()
+from datasets.paths import REPO_DIR, SHARED_DATA_DIR
+
+REPO = REPO_DIR
+DATA = SHARED_DATA_DIR.resolve()
 
 
 def data_file(relative: str) -> Path:

@@ -26,6 +26,7 @@ from hypothesis import strategies as st
 from datasets.carmen import match_keyframe_scans, read_carmen
 from datasets.config import InputConfig
 from datasets.kitti import read_kitti
+from datasets.paths import SHARED_DATA_DIR
 from datasets.relations import read_relations
 from datasets.types import Recording
 from pipeline.config import load_config
@@ -33,7 +34,7 @@ from slam.trajectory_io import read_g2o, read_tum
 from tests.fuzz.properties import CORPUS, reads_cleanly
 
 TEXT_CORPUS = CORPUS / "text"
-SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+SHARED_DATA = SHARED_DATA_DIR
 
 #: Tokens that broke or could break a number parser: non-finite, huge, tiny, beyond int64, malformed.
 NASTY = [
