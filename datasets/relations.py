@@ -11,8 +11,6 @@ shortest text that reads back to the same float64, so a write / read round trip 
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from datasets.errors import DatasetError
+from datasets.files import write_text_atomic
 from datasets.stamps import NS_PER_S, StampRangeError, decimal_to_ns, ns_to_decimal
 
 FIELDS = "t1 t2 x y z roll pitch yaw"
@@ -145,17 +144,6 @@ def write_relations(path: str | Path, relations: Relations) -> None:
         numbers = " ".join(repr(float(v)) for v in (*xyz, *rpy))
         lines.append(f"{_stamp_text(t1)} {_stamp_text(t2)} {numbers}")
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+        write_text_atomic(path, "\n".join(lines) + "\n", encoding="ascii")
     except OSError as exc:
         raise RelationsError(f"{path}: cannot write: {exc.strerror or exc}") from None
-    try:
-        with os.fdopen(fd, "w", encoding="ascii") as f:
-            f.write("\n".join(lines) + "\n")
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; this is an ordinary output file
-        os.replace(tmp, path)
-    except OSError as exc:
-        Path(tmp).unlink(missing_ok=True)
-        raise RelationsError(f"{path}: cannot write: {exc.strerror or exc}") from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

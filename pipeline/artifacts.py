@@ -11,14 +11,13 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets.files import atomic_output
 from datasets.types import ScanSequence
 from pipeline.errors import PipelineError
 from slam.result import SlamResult
@@ -33,15 +32,8 @@ COVARIANCES_NPZ = "covariances.npz"
 
 
 def _savez_atomic(path: Path, **arrays: object) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".npz")
-    os.close(fd)
-    try:
+    with atomic_output(path, suffix=".npz") as tmp:
         np.savez_compressed(tmp, **arrays)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; these are ordinary output files
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 @dataclass(frozen=True)

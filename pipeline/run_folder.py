@@ -19,6 +19,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from datasets.files import write_text_atomic
 from pipeline.errors import PipelineError
 
 SUMMARY_NAME = "summary.json"
@@ -125,9 +126,7 @@ def staged_run_folder(out_dir: Path, overwrite: bool = False) -> Iterator[Path]:
 def write_summary(folder: Path, summary: dict[str, Any]) -> Path:
     """Write ``summary.json`` (call it last: its presence marks a complete run)."""
     path = Path(folder) / SUMMARY_NAME
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(summary, indent=2, default=_json_default) + "\n")
-    tmp.rename(path)
+    write_text_atomic(path, json.dumps(summary, indent=2, default=_json_default) + "\n")
     return path
 
 

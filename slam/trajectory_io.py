@@ -15,9 +15,7 @@ Readers raise :class:`TrajectoryFormatError` (a DatasetError: one line naming th
 from __future__ import annotations
 
 import math
-import os
 import re
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from datasets.errors import DatasetError
+from datasets.files import atomic_output, write_text_atomic
 from datasets.stamps import StampRangeError, decimal_to_ns
 from slam.graph import Edge
 
@@ -34,19 +33,6 @@ NS_PER_S = 1_000_000_000
 
 class TrajectoryFormatError(DatasetError):
     """A trajectory, pose-graph or covariance file is missing or malformed."""
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; these are ordinary output files
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _read_lines(path: Path) -> list[str]:
@@ -122,7 +108,7 @@ def write_tum(path: str | Path, stamps_ns: NDArray[np.int64], poses_xytheta: Flo
         stamps, poses.tolist(), np.sin(half).tolist(), np.cos(half).tolist(), strict=True
     ):
         lines.append(f"{_stamp_text(t)} {x!r} {y!r} 0.0 0.0 0.0 {qz!r} {qw!r}")
-    _atomic_write(Path(path), "\n".join(lines) + "\n")
+    write_text_atomic(path, "\n".join(lines) + "\n")
 
 
 def read_tum(path: str | Path) -> tuple[NDArray[np.int64], FloatArray]:
@@ -189,7 +175,7 @@ def write_g2o(path: str | Path, vertices_xytheta: FloatArray, edges: list[Edge] 
             + " ".join(repr(float(v)) for v in upper)
         )
     # FIX lines last: GTSAM's readG2o stops reading edges at a FIX line that precedes them.
-    _atomic_write(Path(path), "\n".join(lines + fixed) + "\n")
+    write_text_atomic(path, "\n".join(lines + fixed) + "\n")
 
 
 def read_g2o(path: str | Path) -> G2oGraph:
@@ -269,18 +255,8 @@ def save_covariances(
     if b.shape != (k, 3, 3) or a.shape != (k, 3, 3):
         raise ValueError(f"save_covariances: {k} stamps, before {b.shape}, after {a.shape}")
     idx = np.arange(k, dtype=np.int64) if indices is None else np.asarray(indices, dtype=np.int64)
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(
-        dir=path.parent if str(path.parent) else ".", prefix=f".{path.name}.", suffix=".npz"
-    )
-    os.close(fd)
-    try:
+    with atomic_output(path, suffix=".npz") as tmp:
         np.savez(tmp, stamps_ns=stamps, before=b, after=a, indices=idx, frame="world", order="x y theta")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def load_covariances(path: str | Path) -> dict[str, NDArray]:
