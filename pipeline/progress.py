@@ -1,7 +1,7 @@
 """Progress reporting injected into long stages: a rich progress bar on a terminal, silence in a pipe.
 
-Library code receives a :class:`Progress` and calls ``with progress.stage("odometry", total=n) as bar:
-bar.advance()``; it never prints. The command line chooses the implementation.
+The protocol and the silent :class:`Progress` live in :mod:`datasets.progress` (every layer reports through
+them); this module adds the terminal's bars and chooses between the two.
 """
 
 from __future__ import annotations
@@ -9,24 +9,8 @@ from __future__ import annotations
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import Protocol
 
-
-class StageBar(Protocol):
-    def advance(self, amount: int = 1) -> None: ...
-
-
-class _NullBar:
-    def advance(self, amount: int = 1) -> None:
-        pass
-
-
-class Progress:
-    """Silent progress (pipes, tests, library use)."""
-
-    @contextmanager
-    def stage(self, name: str, total: int | None = None) -> Iterator[StageBar]:
-        yield _NullBar()
+from datasets.progress import Progress, StageBar
 
 
 class _RichBar:

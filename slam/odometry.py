@@ -24,14 +24,12 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets.progress import ProgressLike, stage
 from datasets.types import ScanSequence
 from slam import geometry as se2
 from slam.config import OdometryConfig
@@ -52,31 +50,6 @@ MATCHED = 1
 FALLBACK = 2  # registration rejected by the gates: wheel prediction used
 TOO_FEW_POINTS = 3  # not enough usable beams: wheel prediction used
 STATUS_NAMES = {FIRST: "first", MATCHED: "matched", FALLBACK: "fallback", TOO_FEW_POINTS: "too_few_points"}
-
-
-class StageBar(Protocol):
-    def advance(self, amount: int = 1) -> None: ...
-
-
-class ProgressLike(Protocol):
-    """Anything with ``stage(name, total)`` returning a context manager of a bar (pipeline.progress)."""
-
-    def stage(self, name: str, total: int | None = None): ...
-
-
-class _NullBar:
-    def advance(self, amount: int = 1) -> None:
-        pass
-
-
-@contextmanager
-def stage(progress: ProgressLike | None, name: str, total: int | None) -> Iterator[StageBar]:
-    """``progress.stage(name, total)``, or a silent bar without a progress reporter."""
-    if progress is None:
-        yield _NullBar()
-    else:
-        with progress.stage(name, total=total) as bar:
-            yield bar
 
 
 @dataclass(frozen=True)

@@ -20,13 +20,14 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets.progress import ProgressLike, stage
 from datasets.types import Recording, ScanSequence, Trajectory
 from slam import geometry as se2
 from slam.config import GraphConfig, SlamConfig
 from slam.graph import Edge, PoseGraph, edge_errors2
 from slam.keyframes import keyframe_of_scan, relative_cov_body, select_keyframes
 from slam.loop_closure import LoopCloser, LoopClosure
-from slam.odometry import ProgressLike, run_odometry, scans_points_base, stage
+from slam.odometry import run_odometry, scans_points_base
 from slam.result import SlamResult
 
 FloatArray = NDArray[np.float64]

@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from datasets.progress import ProgressLike, stage
 from datasets.types import CloudSequence
 from slam.config import CloudOdometryConfig, SlamConfig
 from slam.graph import Edge
@@ -45,7 +46,6 @@ from slam.graph3d import (
     world_to_body_cov,
 )
 from slam.loop_closure import LoopClosure
-from slam.odometry import ProgressLike, stage
 from slam.result import SlamResult
 
 FloatArray = NDArray[np.float64]

@@ -49,6 +49,7 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.serde import SerdeError
 
 from datasets.errors import DatasetError, UnknownFormatError
+from datasets.progress import stage
 from datasets.ros.bag import first_line
 from datasets.ros.reader import SCAN_POSE_SUFFIX, namespace_of
 from datasets.ros.typestores import BagKind, header_msg, pose_msg, standard_typestore, time_msg
@@ -339,7 +340,7 @@ def write_recording(
     total += len(recording.odometry) if recording.odometry is not None else 0
     total += sum(len(t) for t in odom_by_source.values())
 
-    with open_bag_writer(path) as w, progress.stage("write bag", total=total) if progress else _null() as bar:
+    with open_bag_writer(path) as w, stage(progress, "write bag", total) as bar:
         if scans is not None:
             stamp0 = int(scans.stamps_ns[0])
             tfs = []
@@ -432,13 +433,3 @@ def write_recording(
                 )
                 bar.advance()
         return dict(w.counts)
-
-
-class _NullBar:
-    def advance(self, amount: int = 1) -> None:
-        pass
-
-
-@contextmanager
-def _null() -> Iterator[_NullBar]:
-    yield _NullBar()
