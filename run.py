@@ -154,8 +154,24 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised like Ctrl-C so that every stage unwinds the same way (no partial run folder left)."""
 
 
-def _on_sigterm(signum: int, frame: object) -> None:
-    raise Terminated()
+def _on_signal(signum: int, frame: object) -> None:
+    from pipeline.run_folder import note_interrupt
+
+    note_interrupt(signum)  # kept even if Python drops the exception below (raised inside a finaliser)
+    raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
+def _install_handlers() -> dict[int, Any]:
+    """Our handlers for SIGTERM, and for SIGINT unless it is ignored (a background job's); the old ones."""
+    previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, _on_signal)}
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, _on_signal)
+    return previous
+
+
+def _interrupted(signum: int) -> int:
+    print("terminated" if signum == signal.SIGTERM else "interrupted", file=sys.stderr)
+    return 128 + signum
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -163,23 +179,26 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command is None:
         args = parser.parse_args([*(sys.argv[1:] if argv is None else argv), "demo"])
+    from pipeline.run_folder import note_interrupt, pending_interrupt
+
+    note_interrupt(None)
     in_main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main_thread else None
+    previous = _install_handlers() if in_main_thread else {}
     try:
-        return _dispatch(args)
+        status = _dispatch(args)
     except GpomError as exc:
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"error: {message}", file=sys.stderr)
         return 1
     except Terminated:
-        print("terminated", file=sys.stderr)
-        return 128 + signal.SIGTERM
+        return _interrupted(signal.SIGTERM)
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+        return _interrupted(signal.SIGINT)
     finally:
-        if in_main_thread:
-            signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    signum = pending_interrupt()
+    return status if signum is None else _interrupted(signum)
 
 
 if __name__ == "__main__":

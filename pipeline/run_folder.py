@@ -32,6 +32,28 @@ SUMMARY_NAME = "summary.json"
 MIN_FREE_BYTES = 64 * 2**20
 
 
+class _Interrupts:
+    """The last interrupting signal the command line received (SIGINT or SIGTERM), or None.
+
+    Python drops an exception raised while it runs a finaliser or a weakref callback ("Exception ignored
+    in ..."), so a Ctrl-C that lands there would be lost and the run would finish as if nothing happened.
+    The command line's handlers therefore also record the signal here, and :func:`staged_run_folder`
+    refuses to complete a run folder while one is pending.
+    """
+
+    signum: int | None = None
+
+
+def note_interrupt(signum: int | None) -> None:
+    """Record an interrupting signal (the command line's signal handlers; None clears it)."""
+    _Interrupts.signum = signum
+
+
+def pending_interrupt() -> int | None:
+    """The interrupting signal received so far, or None."""
+    return _Interrupts.signum
+
+
 def check_output_dir(out_dir: Path, overwrite: bool, min_free_bytes: int = MIN_FREE_BYTES) -> None:
     """Fail early (before any work) if ``out_dir`` exists and may not be replaced, or cannot be written.
 
@@ -109,6 +131,8 @@ def staged_run_folder(out_dir: Path, overwrite: bool = False) -> Iterator[Path]:
     staging.mkdir()
     try:
         yield staging
+        if pending_interrupt() is not None:  # an interrupt whose exception Python dropped
+            raise KeyboardInterrupt
         if not (staging / SUMMARY_NAME).is_file():
             raise PipelineError(f"{out_dir}: run finished without writing {SUMMARY_NAME}")
         if out_dir.exists():

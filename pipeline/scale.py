@@ -21,6 +21,7 @@ left per worker thread, so that workers do not oversubscribe the machine.
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import signal
@@ -77,7 +78,7 @@ def _quiet_cluster_logs() -> Iterator[None]:
     spawns (through the environment they inherit). When a run is interrupted or fails, the cluster's
     shutdown races (heartbeats to a closed scheduler, cancelled tasks) print pages of tracebacks that hide
     the one line the command line prints; a task's own error still reaches the run through its future."""
-    names = ("distributed", "tornado")
+    names = ("distributed", "tornado", "asyncio")
     levels = {name: logging.getLogger(name).level for name in names}
     env_key = "DASK_LOGGING__DISTRIBUTED"
     previous_env = os.environ.get(env_key)
@@ -87,6 +88,7 @@ def _quiet_cluster_logs() -> Iterator[None]:
     try:
         yield
     finally:
+        gc.collect()  # "Task exception was never retrieved" is logged when a failed task is collected
         for name, level in levels.items():
             logging.getLogger(name).setLevel(level)
         if previous_env is None:
@@ -99,16 +101,18 @@ def _quiet_cluster_logs() -> Iterator[None]:
 def _children_ignore_sigint() -> Iterator[None]:
     """Start processes that ignore SIGINT: Ctrl-C in a terminal reaches the whole process group, and the
     local cluster's nannies and workers would each print a KeyboardInterrupt traceback while this process
-    shuts them down cleanly (an ignored signal stays ignored across fork and exec). Only the main thread may
-    change signal handlers; elsewhere this does nothing."""
+    shuts them down cleanly (an ignored signal stays ignored across fork and exec). The price: a Ctrl-C
+    pressed during the cluster's start (about a second) is ignored here too; blocking the signal instead
+    would not keep it, since any thread of this process that does not block it (BLAS, numba) may receive
+    it and discard it. Only the main thread may change handlers; elsewhere this does nothing."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGINT, handler)
 
 
 class DaskEngine:
