@@ -197,7 +197,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    signum = pending_interrupt()
+        signum = pending_interrupt()
+        note_interrupt(None)  # a later call in this process (tests, notebooks) starts clean
     return status if signum is None else _interrupted(signum)
 
 
