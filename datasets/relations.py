@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from datasets.errors import DatasetError
 from datasets.files import write_text_atomic
-from datasets.stamps import NS_PER_S, StampRangeError, decimal_to_ns, ns_to_decimal
+from datasets.stamps import NS_PER_S, ns_to_decimal, stamp_field_ns
 
 FIELDS = "t1 t2 x y z roll pitch yaw"
 
@@ -114,13 +114,9 @@ def read_relations(path: str | Path) -> Relations:
 def _stamp(path: Path, number: int, token: str) -> int:
     """Exact nanoseconds of one timestamp field; RelationsError naming the line if it is not one."""
     try:
-        return decimal_to_ns(token)
-    except StampRangeError:
-        raise RelationsError(
-            f"{path}: line {number}: timestamp '{token}' is out of range (int64 nanoseconds, +-292 years)"
-        ) from None
-    except (ValueError, OverflowError):
-        raise RelationsError(f"{path}: line {number}: timestamp '{token}' is not a decimal number") from None
+        return stamp_field_ns(token)
+    except ValueError as exc:
+        raise RelationsError(f"{path}: line {number}: timestamp '{token}' {exc}") from None
 
 
 def _stamp_text(stamp_ns: int) -> str:

@@ -61,6 +61,18 @@ class StampRangeError(ValueError):
         )
 
 
+def stamp_field_ns(text: str) -> int:
+    """:func:`decimal_to_ns` of one text field of a file; a ValueError whose message says what is wrong
+    with the field ("is out of range ..." / "is not a decimal number"), for the reader to prefix with the
+    file, the line and the field."""
+    try:
+        return decimal_to_ns(text)
+    except StampRangeError:
+        raise ValueError("is out of range (int64 nanoseconds, +-292 years)") from None
+    except (ValueError, OverflowError):
+        raise ValueError("is not a decimal number") from None
+
+
 def _shortened(text: str, limit: int = 40) -> str:
     """``text`` cut to about ``limit`` characters for a message."""
     return text if len(text) <= limit else text[: limit - 3] + "..."

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from datasets.errors import DatasetError
 from datasets.files import atomic_output, write_text_atomic
-from datasets.stamps import StampRangeError, decimal_to_ns
+from datasets.stamps import stamp_field_ns
 from slam.graph import Edge
 
 FloatArray = NDArray[np.float64]
@@ -55,15 +55,9 @@ def _stamp_text(stamp_ns: int) -> str:
 def _parse_stamp(path: Path, number: int, text: str) -> int:
     """Exact nanoseconds of a stamp field in decimal seconds; TrajectoryFormatError naming the line."""
     try:
-        return decimal_to_ns(text)
-    except StampRangeError:
-        raise TrajectoryFormatError(
-            f"{path}: line {number}: stamp '{text}' is out of range (int64 nanoseconds, +-292 years)"
-        ) from None
-    except ValueError:
-        raise TrajectoryFormatError(
-            f"{path}: line {number}: stamp '{text}' is not a decimal number"
-        ) from None
+        return stamp_field_ns(text)
+    except ValueError as exc:
+        raise TrajectoryFormatError(f"{path}: line {number}: stamp '{text}' {exc}") from None
 
 
 def _finite_floats(path: Path, number: int, fields: list[str], what: str) -> list[float]:
