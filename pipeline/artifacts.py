@@ -11,8 +11,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -124,11 +126,20 @@ def read_scan_covariances(path: Path, which: str = "after") -> tuple[NDArray[np.
     are absent (e.g. a file written by another tool): each scan then takes the covariance of the latest
     keyframe at or before it (see :func:`covariances_at`).
     """
+
+    def read(z) -> tuple[NDArray[np.int64], NDArray]:
+        if f"scan_{which}" in z:
+            return np.asarray(z["scan_stamps_ns"], np.int64), np.asarray(z[f"scan_{which}"], np.float64)
+        return np.asarray(z["stamps_ns"], np.int64), np.asarray(z[which], np.float64)
+
+    return _from_covariance_archive(path, read)
+
+
+def _from_covariance_archive(path: Path, read: Callable[[Any], Any]) -> Any:
+    """``read(archive)`` of the covariance archive ``path``; TrajectoryFormatError if missing or malformed."""
     try:
         with np.load(Path(path)) as z:
-            if f"scan_{which}" in z:
-                return np.asarray(z["scan_stamps_ns"], np.int64), np.asarray(z[f"scan_{which}"], np.float64)
-            return np.asarray(z["stamps_ns"], np.int64), np.asarray(z[which], np.float64)
+            return read(z)
     except FileNotFoundError:
         raise TrajectoryFormatError(f"{path}: no such file or directory") from None
     except (OSError, KeyError, ValueError) as exc:
@@ -137,13 +148,7 @@ def read_scan_covariances(path: Path, which: str = "after") -> tuple[NDArray[np.
 
 def read_keyframe_indices(path: Path) -> NDArray[np.int64]:
     """The scan index of every keyframe (``indices``, (K,)) of a run's ``covariances.npz``."""
-    try:
-        with np.load(Path(path)) as z:
-            indices = np.asarray(z["indices"])
-    except FileNotFoundError:
-        raise TrajectoryFormatError(f"{path}: no such file or directory") from None
-    except (OSError, KeyError, ValueError) as exc:
-        raise TrajectoryFormatError(f"{path}: not a covariance archive ({exc})") from None
+    indices = _from_covariance_archive(path, lambda z: np.asarray(z["indices"]))
     if indices.ndim != 1 or indices.dtype.kind not in "iu" or len(indices) == 0 or (indices < 0).any():
         raise TrajectoryFormatError(f"{path}: 'indices' is not a list of scan indices")
     return indices.astype(np.int64)
