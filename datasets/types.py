@@ -15,13 +15,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from datasets.errors import DatasetError
+from datasets.se2 import wrap_angle as wrap_angle_rad  # also imported from here by readers and tests
 
 FloatArray = NDArray[np.float64]
-
-
-def wrap_angle_rad(theta_rad: NDArray | float) -> NDArray | float:
-    """Wrap angles to [-pi, pi)."""
-    return (np.asarray(theta_rad) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def beam_angles_rad(angle_min_rad: float, angle_increment_rad: float, num_beams: int) -> NDArray[np.float32]:

@@ -32,6 +32,8 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets import se2
+
 FloatArray = NDArray[np.float64]
 
 
@@ -175,11 +177,9 @@ def compose_laser_poses(poses_xytheta: FloatArray, laser_in_base_xytheta: FloatA
     """(N, 3) world poses of the laser from (N, 3) base poses and the (3,) laser mounting in the base."""
     p = np.asarray(poses_xytheta, dtype=np.float64).reshape(-1, 3)
     m = np.asarray(laser_in_base_xytheta, dtype=np.float64).reshape(3)
-    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
     out = np.empty_like(p)
-    out[:, 0] = p[:, 0] + c * m[0] - s * m[1]
-    out[:, 1] = p[:, 1] + s * m[0] + c * m[1]
-    out[:, 2] = p[:, 2] + m[2]
+    out[:, :2] = se2.transform_points(p, m[:2])
+    out[:, 2] = p[:, 2] + m[2]  # not wrapped (unlike se2.compose): base_poses_xytheta subtracts m[2] again
     return out
 
 

@@ -42,6 +42,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets import se2
+
 FloatArray = NDArray[np.float64]
 
 STATE_DIM = 5  # (r, b, x, y, theta)
@@ -114,12 +116,10 @@ def beam_point(state: FloatArray, laser_in_base_xytheta: FloatArray | None = Non
     (..., 2) world points."""
     s = np.asarray(state, dtype=np.float64)
     m = np.zeros(3) if laser_in_base_xytheta is None else np.asarray(laser_in_base_xytheta, np.float64)
-    r, b, x, y, th = (s[..., i] for i in range(5))
-    c, sn = np.cos(th), np.sin(th)
+    r, b, th = s[..., 0], s[..., 1], s[..., 4]
     ang = th + m[2] + b
-    return np.stack(
-        [x + c * m[0] - sn * m[1] + r * np.cos(ang), y + sn * m[0] + c * m[1] + r * np.sin(ang)], -1
-    )
+    laser_xy = se2.transform_points(s[..., 2:5], m[:2])  # the laser origin: base pose (x, y, theta) * mount
+    return laser_xy + r[..., None] * np.stack([np.cos(ang), np.sin(ang)], -1)
 
 
 @dataclass(frozen=True)
@@ -207,11 +207,9 @@ def beam_moments(
     th = chi[..., 4]
     ang = th + m[2] + chi[..., 1]
     u = np.stack([np.cos(ang), np.sin(ang)], -1)  # (M, K, 2)
-    ct, st = np.cos(th), np.sin(th)
     # positions relative to the mean base position: no cancellation of large world coordinates below
-    rel_x = chi[..., 2] - pose[:, None, 0]
-    rel_y = chi[..., 3] - pose[:, None, 1]
-    A = np.stack([rel_x + ct * m[0] - st * m[1], rel_y + st * m[0] + ct * m[1]], -1)
+    rel_pose = np.stack([chi[..., 2] - pose[:, None, 0], chi[..., 3] - pose[:, None, 1], th], -1)
+    A = se2.transform_points(rel_pose, m[:2])  # laser origin of each sigma point
     P = A + dr[..., None] * u  # image of the sigma point at d = 0; at d it is P + d u (eq. 26)
     a = np.einsum("k,mkp->mp", wm, P) + pose[:, :2]  # eq. (27), the parts constant and linear in d
     bb = np.einsum("k,mkp->mp", wm, u)

@@ -12,41 +12,14 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+# the basic operations live on the ground floor (shared with the readers, the simulation and mapping)
+from datasets import se2
+from datasets.se2 import between as between
+from datasets.se2 import compose as compose
+from datasets.se2 import inverse as inverse
+from datasets.se2 import wrap_angle as wrap
+
 FloatArray = NDArray[np.float64]
-
-
-def wrap(theta_rad: NDArray | float) -> NDArray | float:
-    """Angles wrapped to [-pi, pi)."""
-    return (np.asarray(theta_rad) + np.pi) % (2.0 * np.pi) - np.pi
-
-
-def compose(a: FloatArray, d: FloatArray) -> FloatArray:
-    """``a * d`` for (..., 3) poses."""
-    a = np.asarray(a, dtype=np.float64)
-    d = np.asarray(d, dtype=np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    x = a[..., 0] + c * d[..., 0] - s * d[..., 1]
-    y = a[..., 1] + s * d[..., 0] + c * d[..., 1]
-    return np.stack([x, y, wrap(a[..., 2] + d[..., 2])], axis=-1)
-
-
-def inverse(a: FloatArray) -> FloatArray:
-    """``a^-1`` for (..., 3) poses."""
-    a = np.asarray(a, dtype=np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    x = -(c * a[..., 0] + s * a[..., 1])
-    y = -(-s * a[..., 0] + c * a[..., 1])
-    return np.stack([x, y, wrap(-a[..., 2])], axis=-1)
-
-
-def between(a: FloatArray, b: FloatArray) -> FloatArray:
-    """``a^-1 * b`` for (..., 3) poses: the pose of ``b`` seen from ``a``."""
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    dx = b[..., 0] - a[..., 0]
-    dy = b[..., 1] - a[..., 1]
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap(b[..., 2] - a[..., 2])], axis=-1)
 
 
 def chain(start: FloatArray, increments: FloatArray) -> FloatArray:
@@ -73,7 +46,11 @@ def logmap(d: FloatArray) -> FloatArray:
 
 
 def transform_points(pose: FloatArray, points_xy: FloatArray) -> FloatArray:
-    """(P, 2) body-frame points mapped to the world by one pose (3,)."""
+    """(P, 2) body-frame points mapped to the world by one pose (3,).
+
+    A matrix product, which rounds differently from :func:`datasets.se2.transform_points`; kept so that
+    scan matching, and so SLAM trajectories, stay bit for bit what they were.
+    """
     c, s = np.cos(pose[2]), np.sin(pose[2])
     rot = np.array([[c, -s], [s, c]])
     return points_xy @ rot.T + pose[:2]
@@ -81,10 +58,7 @@ def transform_points(pose: FloatArray, points_xy: FloatArray) -> FloatArray:
 
 def transform_points_each(poses_xytheta: FloatArray, point_xy: FloatArray) -> FloatArray:
     """(N, 2) one body-frame point (2,) mapped to the world by each of (N, 3) poses."""
-    p = np.asarray(poses_xytheta, dtype=np.float64)
-    c, s = np.cos(p[:, 2]), np.sin(p[:, 2])
-    x, y = float(point_xy[0]), float(point_xy[1])
-    return np.stack([p[:, 0] + c * x - s * y, p[:, 1] + s * x + c * y], axis=1)
+    return se2.transform_points(poses_xytheta, np.asarray(point_xy, dtype=np.float64)[:2])
 
 
 def rot3(theta_rad: NDArray | float) -> FloatArray:

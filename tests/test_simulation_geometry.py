@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from datasets.errors import DatasetError
+from datasets.se2 import between as relative
+from datasets.se2 import compose
 from datasets.simulation import (
     GroundTruth,
     LaserSpec,
@@ -20,7 +22,7 @@ from datasets.simulation import (
     save_ground_truth,
 )
 from datasets.simulation.geometry import box, polygon_area_m2, rectangle, regular_polygon, wall_with_gaps
-from datasets.simulation.sensors import SmoothPath, compose, drift_odometry, relative, simulate_ranges
+from datasets.simulation.sensors import SmoothPath, drift_odometry, simulate_ranges
 
 ROOM = World("room", (box(-2.0, -1.0, 3.0, 4.0),), ("wall",), (-5.0, -5.0, 5.0, 5.0))
 BLOCK = World("block", (box(2.0, 2.0, 3.0, 3.0),), ("building",), (0.0, 0.0, 5.0, 5.0))

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from datasets.errors import DatasetError
+from datasets.se2 import compose
 from datasets.simulation import SimulatedRun, World, cast_rays, make_world, rasterize
 from datasets.simulation.geometry import polygon_area_m2
-from datasets.simulation.sensors import compose
 
 
 @pytest.fixture(scope="module")

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from datasets.se2 import compose
 from datasets.simulation.recording import SimulatedRun
-from datasets.simulation.sensors import compose
 
 DOCS_DIR = Path(__file__).resolve().parents[2] / "docs" / "figures" / "simulation"
 # (poses, returns) per platform, as in the paper's Figure 8

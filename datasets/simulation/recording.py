@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets.se2 import compose
 from datasets.simulation.geometry import World
 from datasets.simulation.raster import GroundTruth, NoiseSource, rasterize
-from datasets.simulation.sensors import LaserSpec, OdometryNoise, compose, simulate_ranges
+from datasets.simulation.sensors import LaserSpec, OdometryNoise, simulate_ranges
 from datasets.types import Recording, ScanSequence, Trajectory
 
 FloatArray = NDArray[np.float64]

@@ -45,9 +45,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets import se2
 from datasets.errors import DatasetError
 from datasets.simulation.raycast import cast_rays, cast_rays_hit_edges
-from datasets.types import beam_angles_rad, wrap_angle_rad
+from datasets.types import beam_angles_rad
 
 FloatArray = NDArray[np.float64]
 
@@ -121,26 +122,6 @@ class OdometryNoise:
         return {k: float(v) for k, v in asdict(self).items()}
 
 
-def compose(a_xytheta: FloatArray, b_xytheta: FloatArray) -> FloatArray:
-    """(N, 3) poses ``a * b`` (SE(2) composition, broadcasting)."""
-    a = np.asarray(a_xytheta, dtype=np.float64)
-    b = np.asarray(b_xytheta, dtype=np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
-    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
-    return np.stack([x, y, wrap_angle_rad(a[..., 2] + b[..., 2])], axis=-1)
-
-
-def relative(a_xytheta: FloatArray, b_xytheta: FloatArray) -> FloatArray:
-    """(N, 3) poses ``a^-1 * b``: ``b`` in the frame of ``a``."""
-    a = np.asarray(a_xytheta, dtype=np.float64)
-    b = np.asarray(b_xytheta, dtype=np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    dx = b[..., 0] - a[..., 0]
-    dy = b[..., 1] - a[..., 1]
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle_rad(b[..., 2] - a[..., 2])], axis=-1)
-
-
 def simulate_ranges(
     edges: FloatArray, laser_poses_xytheta: FloatArray, spec: LaserSpec, rng: np.random.Generator
 ) -> NDArray[np.float32]:
@@ -211,7 +192,7 @@ def drift_odometry(
 ) -> FloatArray:
     """(M, 3) wheel odometry integrated from noisy increments of (M, 3) true poses, starting at the first."""
     truth = np.asarray(true_poses_xytheta, dtype=np.float64)
-    inc = relative(truth[:-1], truth[1:])
+    inc = se2.between(truth[:-1], truth[1:])
     ds = np.hypot(inc[:, 0], inc[:, 1])
     z = rng.standard_normal((inc.shape[0], 3))
     noisy = np.empty_like(inc)
@@ -236,7 +217,7 @@ def drift_odometry(
     c, s = np.cos(theta[:-1]), np.sin(theta[:-1])
     out[1:, 0] = truth[0, 0] + np.cumsum(c * noisy[:, 0] - s * noisy[:, 1])
     out[1:, 1] = truth[0, 1] + np.cumsum(s * noisy[:, 0] + c * noisy[:, 1])
-    out[:, 2] = wrap_angle_rad(theta)
+    out[:, 2] = se2.wrap_angle(theta)
     return out
 
 
@@ -312,4 +293,4 @@ class SmoothPath:
         x = np.interp(s, self._s, self._xy[:, 0])
         y = np.interp(s, self._s, self._xy[:, 1])
         th = np.interp(s, self._s, self._theta)
-        return np.stack([x, y, wrap_angle_rad(th)], axis=1)
+        return np.stack([x, y, se2.wrap_angle(th)], axis=1)
