@@ -15,6 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapping.beams import Beams
+from mapping.gpmap import GPOccupancyMap
+from mapping.metrics import roc_auc
 
 FloatArray = NDArray[np.float64]
 
@@ -166,3 +168,12 @@ def observed_points(
     ij[:, 0] = np.clip(ij[:, 0], 0, nx - 1)  # a rounding at a cell's edge never leaves the lattice
     ij[:, 1] = np.clip(ij[:, 1], 0, ny - 1)
     return counts[ij[:, 1], ij[:, 0]] > 0
+
+
+def ground_truth_auc(
+    gp: GPOccupancyMap, occupancy: NDArray, origin_xy_m: NDArray, resolution_m: float
+) -> float:
+    """AUC of p(occ) over every cell of a ground-truth raster (SPEC section 6, simulated worlds):
+    ``occupancy`` (H, W) truthy where occupied, its lower-left corner at ``origin_xy_m``."""
+    centres = raster_cell_centres(occupancy.shape, np.asarray(origin_xy_m, np.float64), resolution_m)
+    return roc_auc(gp.query(centres, sort=False).probability, np.asarray(occupancy).astype(bool).ravel())

@@ -36,6 +36,7 @@ import numpy as np
 from datasets.errors import DatasetError
 from datasets.types import Recording
 from mapping.beams import Beams, compose_laser_poses
+from mapping.build import MAPPERS, Bounds, MapBuilder
 from mapping.config import MappingConfig, SourceNoiseConfig
 from mapping.evaluation import (
     holdout_block_scans,
@@ -45,9 +46,9 @@ from mapping.evaluation import (
     observed_points,
 )
 from mapping.metrics import roc_auc
-from pipeline import mapping_stage as ms
 from pipeline.config import load_config
 from pipeline.errors import PipelineError
+from pipeline.map_bounds import parse_numbers
 from pipeline.progress import Progress
 
 DEFAULT_SEEDS = [0, 1, 2, 3, 4]
@@ -57,7 +58,7 @@ PERTURB_SEED_BASE = 1_000_000
 def make_beams(rec: Recording, base_poses: np.ndarray, indices: np.ndarray, cfg: MappingConfig) -> Beams:
     """World-frame beams of the scans ``indices`` of ``rec`` at BASE poses ``base_poses`` (N, 3) (composed
     with the recording's laser mounting)."""
-    return ms.make_beams(rec.scans, base_poses, rec.laser_in_base_xytheta, cfg, indices)
+    return MapBuilder.from_config(cfg).beams(rec.scans, base_poses, rec.laser_in_base_xytheta, indices)
 
 
 def reference_base_poses(rec: Recording, input_path: Path) -> np.ndarray:
@@ -114,7 +115,7 @@ def parse_perturbation(text: str | None) -> tuple[float, float] | None:
     """``"SIGMA_XY_M,SIGMA_THETA_RAD"`` (None passes through); PipelineError if malformed."""
     if text is None:
         return None
-    values = ms.parse_numbers(text, 2)
+    values = parse_numbers(text, 2)
     if values is None or not all(v >= 0 for v in values):
         raise PipelineError(
             f"--perturb-poses must be SIGMA_XY_M,SIGMA_THETA_RAD (two numbers >= 0), got {text!r}"
@@ -165,7 +166,7 @@ def _map_and_score(
     points: np.ndarray,
     labels: np.ndarray,
     seed_offset: int,
-    grid_bounds: ms.Bounds | None,
+    grid_bounds: Bounds | None,
     sort: bool,
     observed: np.ndarray | None = None,
 ) -> dict[str, Any]:
@@ -174,11 +175,12 @@ def _map_and_score(
     unobserved cells (:func:`_split_aucs`), after the other keys."""
     row: dict[str, Any] = {}
     split: dict[str, Any] = {}
-    for mapper in ms.MAPPERS:
+    for mapper in MAPPERS:
+        builder = MapBuilder.from_config(cfg, mapper)
         t0 = time.perf_counter()
-        params = ms.fit_params(beams, cfg, seed_offset, mapper=mapper, cov_xytheta=cov)
+        params = builder.fit(beams, cov, seed_offset)
         t1 = time.perf_counter()
-        gp = ms.build_gp_map(beams, params, cfg, cov, mapper=mapper)
+        gp = builder.gp_map(beams, params, cov)
         p = gp.query(points, sort=sort).probability
         t2 = time.perf_counter()
         row[f"auc_{mapper}"] = roc_auc(p, labels)
@@ -189,7 +191,7 @@ def _map_and_score(
         row[f"{mapper}_hyperparameters"] = {"kernel": params.kernel.name, **params.kernel.as_dict()}
         row[f"{mapper}_params"] = params.to_dict()  # save as JSON and set mapping.params_file to reuse
     t0 = time.perf_counter()
-    p_grid = ms.build_grid(beams, cfg, grid_bounds).query(points)
+    p_grid = MapBuilder.from_config(cfg).grid(beams, grid_bounds).query(points)
     row["auc_grid"] = roc_auc(p_grid, labels)
     row["grid_s"] = time.perf_counter() - t0
     if observed is not None:

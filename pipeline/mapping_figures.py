@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from mapping.build import MapBuilder
 from mapping.evaluation import (
     holdout_split,
     holdout_test_points,
@@ -36,10 +37,9 @@ from mapping.figures import (
 )
 from mapping.grid import OccupancyGrid
 from mapping.metrics import roc_auc, roc_curve
-from pipeline.bench_mapping import DATA_DIR, INTEL, robust_bounds
 from pipeline.config import load_config
 from pipeline.evaluate_map import ground_truth_noise, make_beams, reference_base_poses, reference_laser_poses
-from pipeline.mapping_stage import build_gp_map, build_grid, fit_params
+from pipeline.figure_data import INTEL_GFS_PATH, robust_bounds
 
 REPO = Path(__file__).resolve().parent.parent
 OUT_DIR = REPO / "docs" / "figures" / "mapping"
@@ -50,14 +50,15 @@ def intel_figures(out: Path) -> dict[str, Any]:
     from datasets.registry import open_dataset
 
     cfg = load_config().mapping
-    path = DATA_DIR / INTEL
+    path = INTEL_GFS_PATH
     rec = open_dataset(path)
     poses = reference_base_poses(rec, path)
     laser = reference_laser_poses(rec, path)
     n = len(rec.scans)
     beams = make_beams(rec, poses, np.arange(n), cfg)
-    params = fit_params(beams, cfg, mapper="gpfol")
-    gp = build_gp_map(beams, params, cfg, mapper="gpfol")
+    builder = MapBuilder.from_config(cfg, "gpfol")
+    params = builder.fit(beams)
+    gp = builder.gp_map(beams, params)
     bounds = robust_bounds(beams.hit_xy_m)
     layers = gp.render(bounds, 0.1)
     plot_layer(layers, "probability", out / "intel_probability.png", "Intel lab, GPFOL p(occupied), 0.1 m")
@@ -69,8 +70,9 @@ def intel_figures(out: Path) -> dict[str, Any]:
     carmen = is_carmen_180(rec.scans.angles_rad[0])
     pts, labels = holdout_test_points(rec.scans.ranges_m, rec.scans.angles_rad, laser, held, 0, carmen)
     tb = make_beams(rec, poses, train, cfg)
-    p_gp = build_gp_map(tb, fit_params(tb, cfg, mapper="gpfol"), cfg, mapper="gpfol").query(pts).probability
-    p_grid = build_grid(tb, cfg).query(pts)
+    builder = MapBuilder.from_config(cfg, "gpfol")
+    p_gp = builder.gp_map(tb, builder.fit(tb)).query(pts).probability
+    p_grid = builder.grid(tb).query(pts)
     curves = {
         "GPFOL": (*roc_curve(p_gp, labels)[:2], roc_auc(p_gp, labels)),
         "occupancy grid": (*roc_curve(p_grid, labels)[:2], roc_auc(p_grid, labels)),
@@ -90,8 +92,9 @@ def street_figures(out: Path, seed: int = 0) -> dict[str, Any]:
     gt = run.ground_truth
     poses = reference_base_poses(rec, Path("street"))
     beams = make_beams(rec, poses, np.arange(len(rec.scans)), cfg)
-    params = fit_params(beams, cfg, mapper="gpfol")
-    gp = build_gp_map(beams, params, cfg, mapper="gpfol")
+    builder = MapBuilder.from_config(cfg, "gpfol")
+    params = builder.fit(beams)
+    gp = builder.gp_map(beams, params)
     occ = np.asarray(gt.occupancy).astype(bool)
     res = float(gt.resolution_m)
     ox, oy = (float(v) for v in gt.origin_xy_m)
@@ -160,8 +163,9 @@ def two_platform_result(seed: int = 0, every: int = 1, config_path: Path | None 
     out: dict[str, Any] = {"auc": {}, "auc_observed": {}, "auc_by_region": {}, "median_variance": {}}
     out["layers"], out["params"] = {}, {}
     for mapper in ("gppol", "gpfol"):
-        params = fit_params(beams, cfg, mapper=mapper)
-        pred = build_gp_map(beams, params, cfg, mapper=mapper).query(centres, sort=False)
+        builder = MapBuilder.from_config(cfg, mapper)
+        params = builder.fit(beams)
+        pred = builder.gp_map(beams, params).query(centres, sort=False)
         p = pred.probability
         out["params"][mapper] = {"kernel": params.kernel.name, **params.kernel.as_dict()}
         out["layers"][mapper] = MapLayers(
@@ -173,7 +177,7 @@ def two_platform_result(seed: int = 0, every: int = 1, config_path: Path | None 
         out["auc_by_region"][mapper] = {k: roc_auc(p[r], labels[r]) for k, r in regions.items()}
         out["auc"][mapper] = roc_auc(p, labels)
         out["auc_observed"][mapper] = roc_auc(p[observed], labels[observed])
-    p_grid = build_grid(beams, cfg, bounds).query(centres)
+    p_grid = MapBuilder.from_config(cfg).grid(beams, bounds).query(centres)
     out["auc"]["grid"] = roc_auc(p_grid, labels)
     out["auc_observed"]["grid"] = roc_auc(p_grid[observed], labels[observed])
     out["layers"]["grid"] = MapLayers(

@@ -33,9 +33,9 @@ from typing import Any
 import numpy as np
 
 from datasets.types import Trajectory
+from mapping.build import Bounds, MapBuilder
 from mapping.exports import read_layers_npz
 from mapping.train import GPParams, ParamsFileError
-from pipeline import mapping_stage as ms
 from pipeline.artifacts import (
     COVARIANCES_NPZ,
     ODOMETRY_TUM,
@@ -49,22 +49,30 @@ from pipeline.artifacts import (
 )
 from pipeline.config import load_config, write_config
 from pipeline.errors import PipelineError, stage_boundary
+from pipeline.map_bounds import check_map_cells, parse_numbers
 from pipeline.map_exports import write_maps
 from pipeline.progress import Progress
-from pipeline.run import StageTimer, select_scans
-from pipeline.run_folder import SUMMARY_NAME, check_output_dir, read_summary, staged_run_folder, write_summary
-from pipeline.scale import engine_name, tile_engine, tiled_map
-from slam import geometry as se2
+from pipeline.run import StageTimer
+from pipeline.run_folder import (
+    SUMMARY_NAME,
+    check_output_dir,
+    params_path,
+    read_summary,
+    staged_run_folder,
+    write_summary,
+)
+from pipeline.scale import engine_name, tile_engine
+from slam.keyframes import scan_poses_from_keyframes
 from slam.trajectory_io import read_g2o, read_tum, write_tum
 
 MAP_NAME = "remap"
 
 
-def parse_bounds(text: str | None) -> ms.Bounds | None:
+def parse_bounds(text: str | None) -> Bounds | None:
     """``"XMIN,YMIN,XMAX,YMAX"`` in metres (None passes through); PipelineError if malformed."""
     if text is None:
         return None
-    values = ms.parse_numbers(text, 4)
+    values = parse_numbers(text, 4)
     if values is None or not (values[2] > values[0] and values[3] > values[1]):
         raise PipelineError(
             f"--bounds must be XMIN,YMIN,XMAX,YMAX with XMAX > XMIN and YMAX > YMIN, got {text!r}"
@@ -72,7 +80,7 @@ def parse_bounds(text: str | None) -> ms.Bounds | None:
     return values[0], values[1], values[2], values[3]
 
 
-def stored_bounds(summary: Any, run_dir: Path) -> ms.Bounds:
+def stored_bounds(summary: Any, run_dir: Path) -> Bounds:
     """The map bounds ``map.bounds_xy_m`` of a run's summary, checked (a PipelineError names the file)."""
     where = f"{Path(run_dir) / SUMMARY_NAME}"
     try:
@@ -115,12 +123,7 @@ def poses_from_g2o(path: Path, run_poses: np.ndarray, keyframe_scans: np.ndarray
     order = np.argsort(graph.ids, kind="stable")
     if not np.array_equal(graph.ids[order], np.arange(k)):
         raise PipelineError(f"{path}: vertex ids must be 0..{k - 1} (the run's keyframes)")
-    kf_new = graph.vertices_xytheta[order]
-    n = len(run_poses)
-    kf_of_scan = np.searchsorted(keyframe_scans, np.arange(n), side="right") - 1
-    kf_of_scan = np.clip(kf_of_scan, 0, k - 1)
-    offset = se2.between(run_poses[keyframe_scans[kf_of_scan]], run_poses)
-    return se2.compose(kf_new[kf_of_scan], offset)
+    return scan_poses_from_keyframes(graph.vertices_xytheta[order], keyframe_scans, run_poses)
 
 
 def remap_run(
@@ -150,7 +153,7 @@ def remap_run(
     config = load_config(run_dir / "config.yaml", overrides)
     cfg = config.mapping
     map_bounds = parse_bounds(bounds) or run_bounds
-    ms.check_map_cells(map_bounds, cfg.resolution_m, config.scale.max_map_cells, f"{run_dir}: the remap")
+    check_map_cells(map_bounds, cfg.resolution_m, config.scale.max_map_cells, f"{run_dir}: the remap")
     with timer("read"), stage_boundary("reading", run_dir):
         stored = read_scans(run_dir / SCANS_FILE)
         scans = stored.scans
@@ -179,7 +182,7 @@ def remap_run(
         new_cov = covariances_at(scans.stamps_ns, cov_stamps, cov)
         _, run_cov = read_scan_covariances(traj_dir / COVARIANCES_NPZ, "after")
         try:
-            params = GPParams.load(ms.params_path(run_dir / "maps"))
+            params = GPParams.load(params_path(run_dir / "maps"))
         except (OSError, ParamsFileError) as exc:
             raise PipelineError(f"{run_dir}: cannot read the learnt GP parameters ({exc})") from None
     run_config = load_config(run_dir / "config.yaml")
@@ -191,7 +194,8 @@ def remap_run(
         and config.scale.tile_cells == run_config.scale.tile_cells
     )
     laser = stored.laser_in_base_xytheta
-    selected = select_scans(odo_poses, laser, cfg)
+    builder = MapBuilder.from_config(cfg)
+    selected = builder.select_scans(odo_poses, laser)
     with (
         stage_boundary("writing", out_dir, name_known_errors=False),
         staged_run_folder(out_dir, overwrite) as stage,
@@ -199,13 +203,15 @@ def remap_run(
         write_config(config, stage / "config.yaml")
         (stage / TRAJECTORY_DIR).mkdir()
         write_tum(stage / TRAJECTORY_DIR / "remap.tum", scans.stamps_ns, new_poses)
-        new_beams = ms.make_beams(scans, new_poses, laser, cfg, selected)
+        new_beams = builder.beams(scans, new_poses, laser, selected)
         sc = config.scale
         with timer(f"map_{MAP_NAME}"), stage_boundary("mapping", run_dir), tile_engine(sc) as renderer:
             if incremental:
                 run_layers = read_layers_npz(run_dir / "maps" / "after" / "layers.npz")
-                run_beams = ms.make_beams(scans, run_poses, laser, cfg, selected)
-                gp = tiled_map(run_beams, params, cfg, sc, map_bounds, run_cov, renderer, layers=run_layers)
+                run_beams = builder.beams(scans, run_poses, laser, selected)
+                gp = builder.tiled_map(
+                    run_beams, params, map_bounds, sc.tile_cells, run_cov, renderer, layers=run_layers
+                )
                 with progress.stage("remap tiles", total=None) as bar:
                     report = gp.update_poses(
                         new_beams,
@@ -215,12 +221,12 @@ def remap_run(
                         on_tile=lambda _r: bar.advance(),
                     )
             else:
-                gp = tiled_map(new_beams, params, cfg, sc, map_bounds, new_cov, renderer)
+                gp = builder.tiled_map(new_beams, params, map_bounds, sc.tile_cells, new_cov, renderer)
                 with progress.stage("remap tiles", total=len(gp.grid)) as bar:
                     report = gp.render_all(on_tile=lambda _r: bar.advance())
         layers = {MAP_NAME: gp.layers()}
         (stage / "maps").mkdir()
-        shutil.copyfile(ms.params_path(run_dir / "maps"), ms.params_path(stage / "maps"))
+        shutil.copyfile(params_path(run_dir / "maps"), params_path(stage / "maps"))
         with timer("export"):
             write_maps(
                 stage / "maps",

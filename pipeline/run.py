@@ -1,8 +1,8 @@
 """``run`` and ``demo``: read -> odometry -> pose graph -> marginals -> GP maps before and after loop
 closure -> the run folder of SPEC section 4.
 
-Stages and their owners: reading (:mod:`datasets`), SLAM (:func:`slam.system.run_slam`), maps
-(:mod:`pipeline.mapping_stage` over :mod:`mapping`), exports (:mod:`pipeline.map_exports`). This module
+Stages and their owners: reading (:mod:`datasets`), SLAM (:func:`slam.system.run_slam_recording`), maps
+(:class:`mapping.build.MapBuilder`), exports (:mod:`pipeline.map_exports`). This module
 only sequences them, times them and writes the run folder (staged, ``summary.json`` last).
 """
 
@@ -19,17 +19,19 @@ import numpy as np
 from datasets.errors import DatasetError
 from datasets.registry import guess_format, open_dataset
 from datasets.types import Recording
-from mapping.beams import compose_laser_poses, select_scans_by_motion
+from mapping.build import Bounds, MapBuilder, check_mapper
+from mapping.evaluation import ground_truth_auc
 from mapping.exports import MapLayers
 from mapping.tiling import IncrementalMap, TileRenderer, render_serial
-from pipeline import mapping_stage as ms
+from mapping.train import GPParams
 from pipeline.artifacts import SCANS_FILE, TRAJECTORY_DIR, write_scans, write_trajectories
 from pipeline.config import Config, load_config, write_config
 from pipeline.errors import stage_boundary
+from pipeline.map_bounds import check_map_cells, scan_reach_m, union_bounds
 from pipeline.map_exports import max_variance, write_maps
 from pipeline.progress import Progress
-from pipeline.run_folder import check_output_dir, staged_run_folder, write_summary
-from pipeline.scale import engine_name, tile_engine, tiled_map
+from pipeline.run_folder import check_output_dir, params_path, staged_run_folder, write_summary
+from pipeline.scale import engine_name, tile_engine
 from slam.metrics import ate_rmse
 from slam.result import SlamResult
 from slam.system import run_slam_recording
@@ -79,34 +81,35 @@ def build_maps(
     config: Config,
     timer: StageTimer,
     progress: Progress,
-    params: ms.GPParams | None = None,
-    bounds: ms.Bounds | None = None,
+    params: GPParams | None = None,
+    bounds: Bounds | None = None,
     selected: np.ndarray | None = None,
     renderer: TileRenderer = render_serial,
-) -> tuple[dict[str, MapLayers], dict[str, IncrementalMap], ms.GPParams, ms.Bounds]:
+) -> tuple[dict[str, MapLayers], dict[str, IncrementalMap], GPParams, Bounds]:
     """GP maps for each named trajectory ``{name: (base poses (N,3), covariances (N,3,3) | None)}``.
 
     The scans mapped are ``selected`` (default: selected by motion along the first trajectory,
-    :func:`select_scans`), the same for every map. Hyperparameters are learnt once (on the first
+    :meth:`MapBuilder.select_scans`), the same for every map. Hyperparameters are learnt once (on the first
     trajectory's beams) unless ``params`` is given; every map is rendered on the same grid (``bounds``:
     default the union of the data bounds), tile by tile (:mod:`pipeline.scale`) with the engine ``renderer``.
     Returns the layers, the tiled maps (:class:`mapping.tiling.IncrementalMap`, ready for incremental
     updates), the parameters and the bounds.
     """
     cfg = config.mapping
+    builder = MapBuilder.from_config(cfg)
     if selected is None:
-        selected = select_scans(next(iter(trajectories.values()))[0], laser_in_base, cfg)
+        selected = builder.select_scans(next(iter(trajectories.values()))[0], laser_in_base)
     beams = {
-        name: ms.make_beams(rec_scans, poses, laser_in_base, cfg, selected)
+        name: builder.beams(rec_scans, poses, laser_in_base, selected)
         for name, (poses, _) in trajectories.items()
     }
     if bounds is None:
-        bounds = ms.union_bounds(*(b.bounds_xy_m(MAP_MARGIN_M) for b in beams.values()))
-    ms.check_map_cells(bounds, cfg.resolution_m, config.scale.max_map_cells, "the maps of the run")
+        bounds = union_bounds(*(b.bounds_xy_m(MAP_MARGIN_M) for b in beams.values()))
+    check_map_cells(bounds, cfg.resolution_m, config.scale.max_map_cells, "the maps of the run")
     if params is None:
         with timer("train"), progress.stage("train GP", total=1) as bar:
             first = next(iter(trajectories))
-            params = ms.fit_params(beams[first], cfg, cov_xytheta=trajectories[first][1])
+            params = builder.fit(beams[first], cov_xytheta=trajectories[first][1])
             bar.advance()
     layers: dict[str, MapLayers] = {}
     maps: dict[str, IncrementalMap] = {}
@@ -117,25 +120,19 @@ def build_maps(
                 # instead of one per tile) and gives the same map (bit for bit here; to a float32 ulp on
                 # some CPUs: tests/layer_checks.py); the tiled map adopts it, ready for incremental updates.
                 with progress.stage(f"map {name}", total=1) as bar:
-                    whole = ms.build_gp_map(beams[name], params, cfg, cov).render(bounds, cfg.resolution_m)
+                    whole = builder.gp_map(beams[name], params, cov).render(bounds, cfg.resolution_m)
                     bar.advance()
-                maps[name] = tiled_map(
-                    beams[name], params, cfg, config.scale, bounds, cov, renderer, layers=whole
+                maps[name] = builder.tiled_map(
+                    beams[name], params, bounds, config.scale.tile_cells, cov, renderer, layers=whole
                 )
             else:
-                maps[name] = tiled_map(beams[name], params, cfg, config.scale, bounds, cov, renderer)
+                maps[name] = builder.tiled_map(
+                    beams[name], params, bounds, config.scale.tile_cells, cov, renderer
+                )
                 with progress.stage(f"map {name}", total=len(maps[name].grid)) as bar:
                     maps[name].render_all(on_tile=lambda _r, bar=bar: bar.advance())
             layers[name] = maps[name].layers()
     return layers, maps, params, bounds
-
-
-def select_scans(first_poses: np.ndarray, laser_in_base: np.ndarray, cfg) -> np.ndarray:
-    """Indices of the scans a run maps: selected by motion (:func:`select_scans_by_motion`) along the laser
-    poses of the base poses ``first_poses`` (N, 3) -- in a run, the odometry trajectory."""
-    return select_scans_by_motion(
-        compose_laser_poses(first_poses, laser_in_base), cfg.scan_min_travel_m, cfg.scan_min_rotation_rad
-    )
 
 
 def tiles_summary(maps: dict[str, IncrementalMap], config: Config) -> dict[str, Any]:
@@ -183,13 +180,13 @@ def run_pipeline(
     out_dir = Path(out_dir) if out_dir is not None else Path("out") / input_path.name.split(".")[0]
     guess_format(input_path)  # a missing or unknown input fails before anything else
     check_output_dir(out_dir, overwrite)
-    ms.check_mapper_available(config.mapping.mapper)
+    check_mapper(config.mapping.mapper)
 
     with timer("read"), progress.stage("read", total=1) as bar, stage_boundary("reading", input_path):
         rec = read_input(input_path, config)
         bar.advance()
-    reach_m = ms.scan_reach_m(rec.scans) + MAP_MARGIN_M  # no map of this run is smaller than one scan's disc
-    ms.check_map_cells(
+    reach_m = scan_reach_m(rec.scans) + MAP_MARGIN_M  # no map of this run is smaller than one scan's disc
+    check_map_cells(
         (-reach_m, -reach_m, reach_m, reach_m),
         config.mapping.resolution_m,
         config.scale.max_map_cells,
@@ -216,7 +213,7 @@ def run_pipeline(
                 rec.scans, rec.laser_in_base_xytheta, trajectories, config, timer, progress, renderer=renderer
             )
         (stage / "maps").mkdir()
-        params.save(ms.params_path(stage / "maps"))
+        params.save(params_path(stage / "maps"))
         with timer("export"), progress.stage("export", total=1) as bar:
             write_maps(
                 stage / "maps",
@@ -256,7 +253,7 @@ def evaluate_run(
     if gt_path.is_file():
         gt = load_ground_truth(gt_path)
         metrics["auc"] = {
-            name: ms.ground_truth_auc(
+            name: ground_truth_auc(
                 m.factory(m.beams, m.cov_xytheta), gt.occupancy, gt.origin_xy_m, gt.resolution_m
             )
             for name, m in maps.items()
@@ -271,8 +268,8 @@ def make_summary(
     slam: SlamResult,
     config: Config,
     after: MapLayers,
-    bounds: ms.Bounds,
-    params: ms.GPParams,
+    bounds: Bounds,
+    params: GPParams,
     metrics: dict[str, Any],
     timer: StageTimer,
 ) -> dict[str, Any]:

@@ -147,6 +147,11 @@ def staged_run_folder(out_dir: Path, overwrite: bool = False) -> Iterator[Path]:
         raise
 
 
+def params_path(maps_dir: Path) -> Path:
+    """The learnt GP parameters of a run folder's ``maps/`` (``params.json``, SPEC section 4)."""
+    return Path(maps_dir) / "params.json"
+
+
 def write_summary(folder: Path, summary: dict[str, Any]) -> Path:
     """Write ``summary.json`` (call it last: its presence marks a complete run)."""
     path = Path(folder) / SUMMARY_NAME

@@ -1,7 +1,7 @@
-"""Tiled rendering in the pipeline: the ``scale`` configuration, the engines that render tiles (in this
-process, or on a Dask cluster) and the glue that turns beams into a tiled, incrementally updatable map.
+"""Where the pipeline renders map tiles: in this process, or on a Dask cluster.
 
-The algorithms live in :mod:`mapping.tiling`; this module only chooses where tiles are rendered.
+The tiled maps and their algorithms live in :mod:`mapping.tiling` (built by
+:meth:`mapping.build.MapBuilder.tiled_map`); this module only provides the engines that render their tiles.
 
 Engines (``scale.scheduler`` in the configuration, ``--scheduler`` on the command line):
 
@@ -28,36 +28,11 @@ import signal
 import threading
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
-from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
-
-from mapping.beams import Beams
-from mapping.config import MappingConfig
-from mapping.exports import MapLayers
-from mapping.tiling import IncrementalMap, RenderJob, TileGrid, TileRenderer, TileResult, render_serial
+from mapping.tiling import RenderJob, TileRenderer, TileResult, render_serial
 from mapping.tiling.render import render_tile
-from mapping.train import GPParams
 from pipeline.errors import PipelineError
 from pipeline.scale_config import ScaleConfig
-
-
-@dataclass(frozen=True)
-class GPMapFactory:
-    """The map factory of a tile (:data:`mapping.tiling.render.MapFactory`): the pipeline's GP map of
-    ``mapper`` with learnt ``params`` (through :func:`pipeline.mapping_stage.build_gp_map`). Picklable, so
-    that Dask ships it to its workers."""
-
-    params: GPParams
-    cfg: MappingConfig
-    mapper: str
-
-    def __call__(self, beams: Beams, cov_xytheta: NDArray | None) -> Any:
-        from pipeline.mapping_stage import build_gp_map
-
-        return build_gp_map(beams, self.params, self.cfg, cov_xytheta, self.mapper)
 
 
 def _render_task(tile: int, job: RenderJob, numba_threads: int | None) -> TileResult:
@@ -206,39 +181,3 @@ def engine_name(cfg: ScaleConfig) -> str:
     if cfg.scheduler is None:
         return "serial"
     return "dask-local" if cfg.scheduler == "local" else f"dask {cfg.scheduler}"
-
-
-def tiled_map(
-    beams: Beams,
-    params: GPParams,
-    cfg: MappingConfig,
-    scale: ScaleConfig,
-    bounds_xy_m: tuple[float, float, float, float],
-    cov_xytheta: NDArray | None,
-    renderer: TileRenderer = render_serial,
-    mapper: str | None = None,
-    layers: MapLayers | None = None,
-) -> IncrementalMap:
-    """The tiled map of ``beams`` on the grid of ``bounds_xy_m`` at ``cfg.resolution_m`` (tiles of
-    ``scale.tile_cells``). Covariances are kept only for GPPOL (GPFOL ignores them, so their changes do not
-    re-render anything). ``layers``: a rendering of these beams made earlier with the same settings, adopted
-    instead of rendering (call :meth:`IncrementalMap.render_all` otherwise)."""
-    from mapping.tiling import ArraySink
-
-    mapper = mapper or cfg.mapper
-    grid = TileGrid.from_bounds(bounds_xy_m, cfg.resolution_m, scale.tile_cells)
-    sink = ArraySink(grid, layers) if layers is not None else None
-    cov = None if mapper == "gpfol" or cov_xytheta is None else np.asarray(cov_xytheta, np.float64)
-    gp = IncrementalMap(
-        beams,
-        grid,
-        GPMapFactory(params, cfg, mapper),
-        cfg.k_occupied,
-        cfg.k_free,
-        cov,
-        sink=sink,
-        renderer=renderer,
-    )
-    if layers is not None:
-        gp.adopt_rendered()
-    return gp

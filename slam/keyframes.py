@@ -33,8 +33,29 @@ def select_keyframes(poses_xytheta: FloatArray, distance_m: float, rotation_rad:
 
 
 def keyframe_of_scan(keyframe_scans: NDArray[np.int64], n_scans: int) -> NDArray[np.int64]:
-    """(N,) index (into ``keyframe_scans``) of the last keyframe at or before each scan."""
-    return np.searchsorted(keyframe_scans, np.arange(n_scans), side="right") - 1
+    """(N,) index (into the sorted ``keyframe_scans``) of the last keyframe at or before each scan; scans
+    before the first keyframe belong to it."""
+    owner = np.searchsorted(keyframe_scans, np.arange(n_scans), side="right") - 1
+    return np.clip(owner, 0, len(keyframe_scans) - 1)
+
+
+def keyframe_offsets(
+    keyframe_scans: NDArray[np.int64], scan_poses_xytheta: FloatArray
+) -> tuple[NDArray[np.int64], FloatArray]:
+    """Each scan's keyframe (:func:`keyframe_of_scan`, (N,)) and its (N, 3) pose in that keyframe's frame,
+    both taken from the (N, 3) scan poses (the odometry in a run: rigid between keyframes)."""
+    owner = keyframe_of_scan(keyframe_scans, len(scan_poses_xytheta))
+    return owner, se2.between(scan_poses_xytheta[keyframe_scans[owner]], scan_poses_xytheta)
+
+
+def scan_poses_from_keyframes(
+    keyframe_poses_xytheta: FloatArray, keyframe_scans: NDArray[np.int64], scan_poses_xytheta: FloatArray
+) -> FloatArray:
+    """(N, 3) scan poses after the keyframes moved to ``keyframe_poses_xytheta`` (K, 3): each scan keeps its
+    offset from its keyframe in the (N, 3) ``scan_poses_xytheta`` (how the pose graph's estimate reaches
+    every scan)."""
+    owner, offset = keyframe_offsets(keyframe_scans, scan_poses_xytheta)
+    return se2.compose(np.asarray(keyframe_poses_xytheta, dtype=np.float64)[owner], offset)
 
 
 def relative_cov_body(

@@ -25,7 +25,7 @@ from datasets.types import Recording, ScanSequence, Trajectory
 from slam import geometry as se2
 from slam.config import GraphConfig, SlamConfig
 from slam.graph import Edge, PoseGraph, edge_errors2
-from slam.keyframes import keyframe_of_scan, relative_cov_body, select_keyframes
+from slam.keyframes import keyframe_offsets, relative_cov_body, select_keyframes
 from slam.loop_closure import LoopCloser, LoopClosure
 from slam.odometry import run_odometry, scans_points_base
 from slam.result import SlamResult
@@ -253,9 +253,8 @@ def run_slam(
 
     # every scan: its keyframe's pose and covariance composed with the odometry offset
     t0 = time.perf_counter()
-    owner = keyframe_of_scan(kf, n)
+    owner, offset = keyframe_offsets(kf, poses)
     anchor = kf[owner]
-    offset = se2.between(poses[anchor], poses)
     off_cov = relative_cov_body(
         poses[anchor], odo.cov_xytheta[anchor], poses, odo.cov_xytheta, gc.odometry_cov_scale * scale
     )

@@ -45,6 +45,7 @@ from slam.graph3d import (
     relative_se3,
     world_to_body_cov,
 )
+from slam.keyframes import keyframe_of_scan
 from slam.loop_closure import LoopClosure
 from slam.result import SlamResult
 
@@ -309,7 +310,7 @@ def run_slam_clouds(
         kf_cov_before[k] = body_to_world_cov(poses[kf[k]], body)
 
     # every frame: its keyframe's pose composed with the odometry offset
-    owner = np.searchsorted(kf, np.arange(n), side="right") - 1
+    owner = keyframe_of_scan(kf, n)
     after = np.zeros((n, 4, 4))
     cov_after_se3 = np.zeros((n, 6, 6))
     cov_before_se3 = np.zeros((n, 6, 6))

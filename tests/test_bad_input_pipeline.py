@@ -22,7 +22,8 @@ import pytest
 import yaml
 
 from datasets.errors import GpomError
-from pipeline import mapping_stage as ms
+from mapping.build import MapBuilder
+from pipeline import run as run_module
 from pipeline.errors import PipelineError
 from pipeline.remap import remap_run
 from pipeline.run import run_pipeline
@@ -100,8 +101,8 @@ def test_the_run_bounds_are_checked_before_training(small_log, tmp_path, monkeyp
     """A map larger than the limit only because of where SLAM put the scans fails before training and
     rendering (here the single-scan estimate is disabled so that the check on the run's bounds is what
     catches it)."""
-    monkeypatch.setattr(ms, "scan_reach_m", lambda scans: 0.0)
-    monkeypatch.setattr(ms, "fit_params", _fail)
+    monkeypatch.setattr(run_module, "scan_reach_m", lambda scans: 0.0)
+    monkeypatch.setattr(MapBuilder, "fit", _fail)
     cfg = _config(tmp_path, {"scale": {"max_map_cells": 1000}})
     whole_run = rf"{small_log}: the maps of the run: .* cells, above .* = 1e\+03"
     with pytest.raises(PipelineError, match=whole_run):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline.bench_slam import LOGS, bench_slam
+from pipeline.bench.slam import LOGS, bench_slam
 from tests.conftest import data_file
 
 

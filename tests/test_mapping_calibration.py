@@ -11,11 +11,11 @@ from scipy import special
 
 from datasets import open_dataset
 from mapping.beams import beams_from_scans
+from mapping.build import MapBuilder
 from mapping.calibration import beam_test_points, holdout_link, inner_holdout
 from mapping.config import MappingConfig
 from mapping.kernels import make_kernel
 from mapping.train import GPParams
-from pipeline.mapping_stage import build_gp_map, fit_params, make_beams
 from tests.conftest import data_file
 
 
@@ -113,16 +113,17 @@ def test_holdout_link_predicts_unseen_scans_better_than_loo_on_a_real_log() -> N
     poses = np.asarray(rec.reference.poses_xytheta)
     loo_cfg = MappingConfig(mapper="gpfol")
     hold_cfg = loo_cfg.model_copy(update={"pls_link": "holdout"})
-    train = make_beams(rec.scans, poses, rec.laser_in_base_xytheta, loo_cfg, np.arange(200))
-    test = make_beams(rec.scans, poses, rec.laser_in_base_xytheta, loo_cfg, np.arange(200, len(rec.scans)))
-    loo = fit_params(train, loo_cfg)
-    hold = fit_params(train, hold_cfg)
+    loo_builder, hold_builder = MapBuilder.from_config(loo_cfg), MapBuilder.from_config(hold_cfg)
+    train = loo_builder.beams(rec.scans, poses, rec.laser_in_base_xytheta, np.arange(200))
+    test = loo_builder.beams(rec.scans, poses, rec.laser_in_base_xytheta, np.arange(200, len(rec.scans)))
+    loo = loo_builder.fit(train)
+    hold = hold_builder.fit(train)
     assert loo.kernel.as_dict() == hold.kernel.as_dict()  # the same hyperparameters, another link
     assert hold.info["pls"]["fit"] == "holdout" and hold.info["pls"]["held_out_scans"] == 20
     assert hold.info["pls"]["loo"] == {"alpha": loo.alpha, "beta": loo.beta}
     assert 0 < hold.unseen_probability < 1 and 0 < loo.unseen_probability < 1
     pts, y = beam_test_points(test, seed=3)
-    pred = build_gp_map(train, loo, loo_cfg).query(pts)
+    pred = loo_builder.gp_map(train, loo).query(pts)
     ll_loo = _log_lik(loo.alpha, loo.beta, pred.mean, pred.variance, y)
     ll_hold = _log_lik(hold.alpha, hold.beta, pred.mean, pred.variance, y)
     assert ll_hold > ll_loo, (ll_hold, ll_loo)

@@ -9,10 +9,10 @@ import numpy as np
 
 from datasets.types import ScanSequence
 from mapping.beams import beams_from_scan_sequence, beams_from_scans, free_lengths_m, grazing_margins_m
+from mapping.build import MapBuilder
 from mapping.config import MappingConfig
 from mapping.gppol import GaussianInputs, SensorNoise, input_moments
 from mapping.tiling.support import concat_beams
-from pipeline.mapping_stage import make_beams
 
 ORIGIN = np.zeros((1, 3))
 
@@ -131,7 +131,7 @@ def test_train_margin_subsets_and_gppol_free_points_follow_the_grazing_margin() 
     # the configuration reaches the beams the pipeline makes
     seq = ScanSequence(ranges, angles, np.arange(3), 0.1, 20.0)
     cfg = MappingConfig(free_margin_m=0.1, free_band_m=0.05, free_band_per_m=0.01, free_margin_max_m=2.0)
-    made = make_beams(seq, poses, np.zeros(3), cfg)
+    made = MapBuilder.from_config(cfg).beams(seq, poses, np.zeros(3))
     direct = beams_from_scan_sequence(
         seq, poses, None, 2.0, 0.1, free_band_m=0.05, free_band_per_m=0.01, free_margin_max_m=2.0
     )

@@ -11,6 +11,7 @@ import pytest
 
 from datasets.registry import open_dataset
 from mapping.beams import Beams, compose_laser_poses
+from mapping.build import MapBuilder
 from mapping.config import MappingConfig
 from mapping.evaluation import (
     holdout_block_scans,
@@ -22,7 +23,6 @@ from mapping.evaluation import (
 )
 from mapping.metrics import roc_auc
 from mapping.train import GPParams
-from pipeline import mapping_stage as ms
 from pipeline.evaluate_map import evaluate_ground_truth, evaluate_holdout, make_beams, reference_base_poses
 from pipeline.progress import Progress
 from tests.conftest import data_file
@@ -136,7 +136,7 @@ def test_random_beams_agree_with_an_exact_segment_box_test() -> None:
     assert 0 < expected.sum() < expected.size
     np.testing.assert_array_equal(got, expected)
     # the default lattice is the grid baseline's: its cells the beams updated are the observed ones
-    grid = ms.build_grid(beams.subset(~hit), MappingConfig())
+    grid = MapBuilder.from_config(MappingConfig()).grid(beams.subset(~hit))
     touched = grid.log_odds != 0
     centres = raster_cell_centres(touched.shape, grid.origin_xy_m, grid.resolution_m)
     no_return = observed_points(beams.subset(~hit), centres, grid.resolution_m)
@@ -171,14 +171,14 @@ def test_intel_holdout_split_by_observed_cells(intel_seed0) -> None:
     assert share < 0.1  # held-out blocks of a lab mapped twice over: most test points lie in seen cells
 
     # the AUC over the observed points is computed from exactly those points
-    p_grid = ms.build_grid(beams, cfg).query(pts)
+    p_grid = MapBuilder.from_config(cfg).grid(beams).query(pts)
     assert row["auc_grid"] == pytest.approx(roc_auc(p_grid, labels), abs=1e-12)
     assert row["auc_observed_grid"] == pytest.approx(roc_auc(p_grid[observed], labels[observed]), abs=1e-12)
     assert row["auc_unobserved_grid"] == pytest.approx(
         roc_auc(p_grid[~observed], labels[~observed]), abs=1e-12
     )
     params = GPParams.from_dict(row["gpfol_params"])
-    p_gp = ms.build_gp_map(beams, params, cfg, None, mapper="gpfol").query(pts, sort=True).probability
+    p_gp = MapBuilder.from_config(cfg, "gpfol").gp_map(beams, params).query(pts, sort=True).probability
     assert row["auc_gpfol"] == pytest.approx(roc_auc(p_gp, labels), abs=1e-9)
     assert row["auc_observed_gpfol"] == pytest.approx(roc_auc(p_gp[observed], labels[observed]), abs=1e-9)
     for mapper in ("gppol", "gpfol", "grid"):
@@ -205,7 +205,7 @@ def test_ground_truth_protocol_splits_the_raster_cells(tmp_path) -> None:
     observed = observed_points(beams, centres, gt.resolution_m, gt.origin_xy_m)
     assert row["observed_cell_m"] == gt.resolution_m
     assert row["observed_test_points"] == observed.sum() and 0 < row["unobserved_share"] < 1
-    p_grid = ms.build_grid(beams, cfg, gt.bounds_xy_m).query(centres)
+    p_grid = MapBuilder.from_config(cfg).grid(beams, gt.bounds_xy_m).query(centres)
     assert row["auc_observed_grid"] == pytest.approx(roc_auc(p_grid[observed], labels[observed]), abs=1e-12)
 
 

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from datasets.registry import open_dataset
+from mapping.build import MapBuilder
 from mapping.config import MappingConfig
 from mapping.gpmap import GPOccupancyMap
 from pipeline.config import load_config
 from pipeline.evaluate_map import evaluate_holdout, make_beams, reference_laser_poses
-from pipeline.mapping_stage import fit_params
 from pipeline.progress import Progress
 from tests.conftest import REPO, data_file
 
@@ -41,7 +41,7 @@ def test_intel_map_sees_walls_and_free_space(intel) -> None:
     rec, poses = intel
     cfg = MappingConfig(**FAST)
     beams = make_beams(rec, poses, np.arange(len(rec.scans)), cfg)
-    gp = GPOccupancyMap(beams, fit_params(beams, cfg, mapper="gpfol"), cfg.k_occupied, cfg.k_free)
+    gp = GPOccupancyMap(beams, MapBuilder.from_config(cfg, "gpfol").fit(beams), cfg.k_occupied, cfg.k_free)
     rng = np.random.default_rng(0)
     hits = beams.hit_xy_m[rng.choice(int(beams.is_hit.sum()), 3000, replace=False)]
     on_path = poses[:, :2]
@@ -119,4 +119,4 @@ def test_bad_params_file_is_a_config_error(tmp_path) -> None:
     bad.write_text("{}")
     cfg = load_config(overrides={"mapping": {"params_file": str(bad)}}).mapping
     with pytest.raises(ConfigError, match=r"p\.json"):
-        fit_params(None, cfg)
+        MapBuilder.from_config(cfg).fit(None)

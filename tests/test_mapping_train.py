@@ -111,8 +111,11 @@ def test_bad_params_file(tmp_path) -> None:
 
 
 def test_training_uses_train_free_margin_and_the_map_keeps_its_own() -> None:
+    from mapping.build import MapBuilder
     from pipeline.config import MappingConfig
-    from pipeline.mapping_stage import fit_params
+
+    def fit_params(beams, cfg, mapper):
+        return MapBuilder.from_config(cfg, mapper).fit(beams)
 
     budget = {"train_scans": 10, "train_problems": 12, "train_anneal_evaluations": 20, "pls_link": "loo"}
     budget["train_lbfgs_iterations"] = 10

@@ -342,13 +342,15 @@ def test_remap_after_a_local_correction_recomputes_only_the_tiles_it_reaches(loo
     # a 30 m laser sees much of this 120 m x 50 m world from the stretch: a fraction of the tiles
     assert 0 < inc["fraction_recomputed"] < 0.6 and inc["tiles_total"] == full["tiles_total"]
     # the beams of the mapped scans (selected by motion along the odometry) of the stretch moved
+    from mapping.build import MapBuilder
     from pipeline.artifacts import ODOMETRY_TUM, SCANS_FILE, read_scans
     from pipeline.config import load_config
-    from pipeline.run import select_scans
 
     laser = read_scans(loop_run / SCANS_FILE).laser_in_base_xytheta
     odometry = read_tum(loop_run / "trajectory" / ODOMETRY_TUM)[1]
-    mapped = select_scans(odometry, laser, load_config(loop_run / "config.yaml").mapping)
+    mapped = MapBuilder.from_config(load_config(loop_run / "config.yaml").mapping).select_scans(
+        odometry, laser
+    )
     in_stretch = int(np.count_nonzero((mapped >= first) & (mapped <= last)))
     assert 10 < in_stretch <= 41 and inc["changed_beams"] == in_stretch * 360
     a = read_layers_npz(tmp_path / "incremental/maps/remap/layers.npz")

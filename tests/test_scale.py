@@ -372,7 +372,8 @@ def test_array_sink_adopts_a_rendering(corridor) -> None:
 
 
 def test_large_map_benchmark_machinery_on_a_small_city() -> None:
-    from pipeline.bench_scale import bench_large_map, city_edges, city_path, city_ranges
+    from datasets.simulation.city import city_edges, city_path, city_ranges
+    from pipeline.bench.scale import bench_large_map
 
     edges, poses = city_edges(100.0), city_path(100.0)
     assert len(edges) >= 4 * 4 and np.all((poses[:, :2] >= 0) & (poses[:, :2] <= 100))

@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 
 from datasets.registry import open_dataset
+from mapping.build import GPMapFactory, MapBuilder
 from mapping.config import MappingConfig
 from mapping.gpmap import GPOccupancyMap
 from mapping.tiling import IncrementalMap, TileGrid
 from pipeline.errors import PipelineError
 from pipeline.evaluate_map import make_beams, reference_laser_poses
-from pipeline.scale import DaskEngine, GPMapFactory, ScaleConfig, tile_engine
+from pipeline.scale import DaskEngine, ScaleConfig, tile_engine
 from tests.conftest import data_file
 from tests.layer_checks import assert_same_map
 from tests.test_scale import PARAMS, corridor_scans, make
@@ -32,7 +33,7 @@ def test_local_cluster_renders_the_intel_map_like_the_serial_path(intel_beams) -
     beams, cfg = intel_beams
     bounds = beams.bounds_xy_m(1.0)
     grid = TileGrid.from_bounds(bounds, 0.1, 64)
-    factory = GPMapFactory(PARAMS, cfg, "gpfol")
+    factory = GPMapFactory(MapBuilder.from_config(cfg, "gpfol"), PARAMS)
     serial = IncrementalMap(beams, grid, factory, cfg.k_occupied, cfg.k_free)
     serial.render_all()
     with tile_engine(ScaleConfig(scheduler="local", workers=2, threads_per_worker=1)) as engine:
@@ -56,7 +57,7 @@ def test_a_cluster_by_address_renders_like_the_serial_path() -> None:
     beams, bounds = make(*corridor_scans()), (0.0, 0.0, 60.0, 20.0)
     cfg = MappingConfig(mapper="gpfol")
     grid = TileGrid.from_bounds(bounds, 0.2, 32)
-    factory = GPMapFactory(PARAMS, cfg, "gpfol")
+    factory = GPMapFactory(MapBuilder.from_config(cfg, "gpfol"), PARAMS)
     serial = IncrementalMap(beams, grid, factory, cfg.k_occupied, cfg.k_free)
     serial.render_all()
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, dashboard_address=None) as cluster:

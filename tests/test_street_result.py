@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 
 from datasets.simulation import make_world
+from mapping.build import MapBuilder
 from mapping.evaluation import raster_cell_centres
 from mapping.grid import OccupancyGrid
 from mapping.metrics import roc_auc, roc_curve
 from pipeline.config import load_config
 from pipeline.evaluate_map import make_beams, reference_laser_poses
-from pipeline.mapping_stage import build_gp_map, fit_params
 from tests.conftest import REPO
 
 STREET_CONFIG = REPO / "mapping" / "configs" / "street.yaml"
@@ -39,7 +39,8 @@ def street() -> dict[str, tuple[float, float]]:
     beams = make_beams(rec, reference_laser_poses(rec, Path("street")), np.arange(len(rec.scans)), cfg)
     labels = gt.occupancy.astype(bool).ravel()
     centres = raster_cell_centres(gt.occupancy.shape, np.asarray(gt.origin_xy_m, np.float64), gt.resolution_m)
-    gp = build_gp_map(beams, fit_params(beams, cfg, mapper="gpfol"), cfg, mapper="gpfol")
+    builder = MapBuilder.from_config(cfg, "gpfol")
+    gp = builder.gp_map(beams, builder.fit(beams))
     scores = {
         "gpfol": gp.query(centres, sort=False).probability,
         "grid": OccupancyGrid.from_config(beams, cfg.grid, gt.bounds_xy_m).query(centres),

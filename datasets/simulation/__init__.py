@@ -10,7 +10,8 @@
 Worlds: ``street`` and ``two-platform`` are the paper's simulated datasets I and II (section 4.1, Figures 6
 and 8, Table 2); ``loop`` is an indoor loop with drifting wheel odometry for SLAM. Modules: ``geometry``
 (polygons, :class:`World`), ``raycast`` (exact ray casting), ``raster`` (ground truth), ``sensors`` (laser,
-odometry, paths), ``scenarios`` (the worlds), ``recording`` (assembly), ``output``, ``figures``.
+odometry, paths), ``scenarios`` (the worlds), ``recording`` (assembly), ``output``, ``figures``;
+``city`` (a generated city of any size, the scale benchmark's world: edges, path and ranges only).
 """
 
 from datasets.simulation.geometry import World

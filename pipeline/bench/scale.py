@@ -1,15 +1,14 @@
-"""The scale part of ``bench`` (issue 8): a 100-million-cell map streamed to disk under a memory budget, tile
-throughput, and the speed-up of incremental updates after a loop closure on the Intel run.
+"""The scale part of ``bench``: a 10^8-cell map streamed to disk under a memory budget, tile throughput, and
+the speed-up of incremental updates after a loop closure on the Intel run.
 
-Large map. A synthetic city (not realistic, but a real workload): 1 km x 1 km of blocks on a 50 m street grid,
-each block split into one to four buildings with random setbacks; a robot drives every east-west street in a
-lawnmower pattern (~20 km) and scans every 2 m with a 181-beam, 360-degree, 30 m laser (~1.8 M beams, 11x the
-Intel ``gfs`` log). GPFOL (hyperparameters learnt by the default training on its first scans) renders it at
-0.1 m, 10,000 x 10,000 = 10^8 cells, in tiles of 128 cells streamed into a :class:`mapping.tiling.TileStore`
-(1.2 GB of float32 layers on disk). This runs in a fresh Python process so that its peak resident memory
-(its own high-water mark, :func:`pipeline.bench.peak_rss_mib`; everything included: world, beams, index,
-training, rendering) is the map's alone: ``large_map_peak_rss_mib``; ``tiles_per_s`` is its tile throughput.
-It takes tens of minutes on 2 cores.
+Large map. The synthetic city of :mod:`datasets.simulation.city` (not realistic, but a real workload),
+1 km x 1 km: a robot drives every east-west street and scans every 2 m with a 181-beam, 360-degree, 30 m
+laser. GPFOL (hyperparameters learnt by the default training on its first scans) renders it at 0.1 m,
+10,000 x 10,000 = 10^8 cells, in tiles of 128 cells streamed into a :class:`mapping.tiling.TileStore`
+(float32 layers on disk). This runs in a fresh Python process so that its peak resident memory (its own
+high-water mark, :func:`pipeline.bench.peak_rss_mib`; everything included: world, beams, index, training,
+rendering) is the map's alone: ``large_map_peak_rss_mib``; ``tiles_per_s`` is its tile throughput;
+``large_map_bench`` has the sizes (scans, beams, bytes on disk) and the time of each step.
 
 Incremental speed-up. The SLAM stage runs on ``intel.clf``; its final pose graph is replayed into iSAM2
 (:class:`slam.graph.PoseGraph`) factor by factor in keyframe order, as an online system builds it. Just before
@@ -17,12 +16,12 @@ the last accepted loop closure the map of every scan so far is rendered (tiled);
 updates, and the map is updated incrementally (:meth:`mapping.tiling.IncrementalMap.update_poses`) and, for
 comparison, recomputed in full. ``incremental_speedup`` is the full time over the incremental time at the
 default pose tolerance (1 um: the result equals the full recomputation bit for bit). iSAM2 moves most
-keyframes by a little when a loop closes (the last closure of the Intel run: 87% of them by more than 1 mm,
-at most 3 cm) and the lab is small, so every tile is recomputed and there is nothing to gain: the figure
-measures the overhead of the change detection (~1). Beside it: the same at 1 mm and 1 cm (fewer beams count
-as moved; the map then differs from the full recomputation, by the reported largest difference of p(occ)),
-and ``incremental_add_scans_speedup``, online mapping: the last ``ADDED_SCANS`` mapped scans added to the map
-of the others (:meth:`~mapping.tiling.IncrementalMap.add_scans`, equal to the full map bit for bit).
+keyframes by a little when a loop closes (``keyframes_moved``, ``keyframe_move_max_m``) and the lab is small,
+so nearly every tile is recomputed and there is little to gain: the figure measures the overhead of the
+change detection. Beside it: the same at 1 mm and 1 cm (fewer beams count as moved; the map then differs
+from the full recomputation, by the reported largest difference of p(occ)), and
+``incremental_add_scans_speedup``, online mapping: the last ``ADDED_SCANS`` mapped scans added to the map of
+the others (:meth:`~mapping.tiling.IncrementalMap.add_scans`, equal to the full map bit for bit).
 
 Timings depend on the machine's load (the machine may be shared).
 """
@@ -30,9 +29,7 @@ Timings depend on the machine's load (the machine may be shared).
 from __future__ import annotations
 
 import copy
-import itertools
 import json
-import math
 import subprocess
 import sys
 import tempfile
@@ -42,93 +39,29 @@ from typing import Any
 
 import numpy as np
 
-from datasets.paths import SHARED_DATA_DIR
+from datasets.paths import REPO_DIR, SHARED_DATA_DIR
+from datasets.simulation.city import (
+    CITY_RANGE_MAX_M,
+    CITY_SIZE_M,
+    CITY_STREET_PITCH_M,
+    city_edges,
+    city_path,
+    city_ranges,
+)
 from pipeline.bench import peak_rss_mib
 from pipeline.progress import Progress
 
-ROOT = Path(__file__).resolve().parent.parent
 INTEL_CLF = SHARED_DATA_DIR / "intel" / "intel.clf.bz2"
 
-CITY_SIZE_M = 1000.0
 CITY_RESOLUTION_M = 0.1
 CITY_TILE_CELLS = 128
-CITY_STREET_PITCH_M = 50.0
-CITY_STREET_WIDTH_M = 10.0
-CITY_SCAN_STEP_M = 2.0
-CITY_BEAMS = 181
-CITY_RANGE_MAX_M = 30.0
 # pose tolerances of the incremental benchmark: the default (``incremental_speedup``) to 1 cm (0.1 cell)
 INCREMENTAL_TOLERANCES_M = (1e-6, 1e-3, 1e-2)
 ADDED_SCANS = 10
 
 
 # ---------------------------------------------------------------------------------------------------------
-# the synthetic city
-
-
-def city_edges(size_m: float = CITY_SIZE_M, seed: int = 0) -> np.ndarray:
-    """(E, 4) building outlines (``x0, y0, x1, y1`` edges) of a city of ``size_m`` x ``size_m`` on a street
-    grid of pitch ``CITY_STREET_PITCH_M``: every block holds one to four buildings with random setbacks."""
-    rng = np.random.default_rng(seed)
-    pitch, street = CITY_STREET_PITCH_M, CITY_STREET_WIDTH_M
-    n = int(size_m // pitch)
-    boxes = []
-    for i in range(n):
-        for j in range(n):
-            x0, y0 = i * pitch + street, j * pitch + street
-            x1, y1 = (i + 1) * pitch, (j + 1) * pitch
-            if x1 > size_m or y1 > size_m:
-                continue
-            nx, ny = rng.integers(1, 3, 2)  # buildings per block along x and y
-            xs = np.linspace(x0, x1, nx + 1)
-            ys = np.linspace(y0, y1, ny + 1)
-            for a in range(nx):
-                for b in range(ny):
-                    sb = rng.uniform(0.5, 3.0, 4)  # set-backs of the four sides
-                    boxes.append((xs[a] + sb[0], ys[b] + sb[1], xs[a + 1] - sb[2], ys[b + 1] - sb[3]))
-    edges = []
-    for x0, y0, x1, y1 in boxes:
-        edges += [(x0, y0, x1, y0), (x1, y0, x1, y1), (x1, y1, x0, y1), (x0, y1, x0, y0)]
-    return np.asarray(edges, dtype=np.float64)
-
-
-def city_path(size_m: float = CITY_SIZE_M, step_m: float = CITY_SCAN_STEP_M) -> np.ndarray:
-    """(N, 3) scan poses: every east-west street driven in turn (lawnmower), joined along the west and east
-    north-south streets, a pose every ``step_m``."""
-    pitch, half = CITY_STREET_PITCH_M, CITY_STREET_WIDTH_M / 2
-    rows = np.arange(half, size_m, pitch)
-    west, east = half, math.floor((size_m - half) / pitch) * pitch + half
-    corners = []
-    for k, y in enumerate(rows):
-        corners += [(west, y), (east, y)] if k % 2 == 0 else [(east, y), (west, y)]
-    pts = []
-    for (xa, ya), (xb, yb) in itertools.pairwise(corners):
-        n = max(int(math.hypot(xb - xa, yb - ya) // step_m), 1)
-        t = np.arange(n) / n
-        heading = math.atan2(yb - ya, xb - xa)
-        pts.append(np.c_[xa + t * (xb - xa), ya + t * (yb - ya), np.full(n, heading)])
-    return np.concatenate(pts)
-
-
-def city_ranges(poses: np.ndarray, edges: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(N, B) float32 ranges (inf: no return within ``CITY_RANGE_MAX_M``) and (B,) beam angles of a 360-degree
-    laser at ``poses``, ray cast in batches against the edges near each batch."""
-    from datasets.simulation import cast_rays
-
-    rng = np.random.default_rng(seed)
-    angles = np.linspace(-np.pi, np.pi, CITY_BEAMS, endpoint=False)
-    out = np.empty((len(poses), CITY_BEAMS), np.float32)
-    lo = np.minimum(edges[:, :2], edges[:, 2:])
-    hi = np.maximum(edges[:, :2], edges[:, 2:])
-    reach = CITY_RANGE_MAX_M + 1.0
-    for start in range(0, len(poses), 32):
-        p = poses[start : start + 32]
-        a, b = p[:, :2].min(axis=0) - reach, p[:, :2].max(axis=0) + reach
-        near = edges[np.all(hi >= a, axis=1) & np.all(lo <= b, axis=1)]
-        r = cast_rays(p[:, None, :2], p[:, 2:3] + angles[None, :], near)
-        r = r + rng.normal(0.0, 0.01, r.shape)
-        out[start : start + 32] = np.where(r < CITY_RANGE_MAX_M, r, np.inf)
-    return out, angles
+# the large map of the synthetic city
 
 
 def large_map_child(
@@ -137,10 +70,9 @@ def large_map_child(
     """Runs in a fresh process (see :func:`bench_large_map`): build the city, learn the GP, render the map
     into a tile store in ``out_dir``; writes the figures as JSON to ``result_file``."""
     from mapping.beams import beams_from_scans
+    from mapping.build import GPMapFactory, MapBuilder
     from mapping.tiling import IncrementalMap, TileGrid, TileStore
     from pipeline.config import load_config
-    from pipeline.mapping_stage import fit_params
-    from pipeline.scale import GPMapFactory
 
     t_start = time.perf_counter()
     cfg = load_config(overrides={"mapping": {"mapper": "gpfol"}}).mapping
@@ -159,14 +91,13 @@ def large_map_child(
     del ranges
     t_world = time.perf_counter() - t_start
     t0 = time.perf_counter()
-    params = fit_params(beams, cfg, mapper="gpfol")
+    builder = MapBuilder.from_config(cfg, "gpfol")
+    params = builder.fit(beams)
     t_train = time.perf_counter() - t0
     grid = TileGrid.from_bounds((0.0, 0.0, size_m, size_m), resolution_m, tile_cells)
     t0 = time.perf_counter()
     with TileStore.create(Path(out_dir) / "city", grid) as store:
-        m = IncrementalMap(
-            beams, grid, GPMapFactory(params, cfg, "gpfol"), cfg.k_occupied, cfg.k_free, sink=store
-        )
+        m = IncrementalMap(beams, grid, GPMapFactory(builder, params), cfg.k_occupied, cfg.k_free, sink=store)
         t_index = time.perf_counter() - t0
         t0 = time.perf_counter()
         m.render_all()
@@ -213,8 +144,8 @@ def bench_large_map(
     with tempfile.TemporaryDirectory(prefix="gpom-bench-scale-") as tmp:
         result_file = Path(tmp) / "result.json"
         code = (
-            f"import sys; sys.path.insert(0, {str(ROOT)!r}); "
-            "from pipeline.bench_scale import large_map_child; "
+            f"import sys; sys.path.insert(0, {str(REPO_DIR)!r}); "
+            "from pipeline.bench.scale import large_map_child; "
             f"large_map_child({tmp!r}, {size_m!r}, {resolution_m!r}, {tile_cells!r}, {str(result_file)!r})"
         )
         proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
@@ -294,17 +225,18 @@ def _tolerance_runs(m, beams_after, ref) -> dict[str, dict[str, Any]]:
 def bench_incremental(progress: Progress | None = None, path: Path = INTEL_CLF) -> dict[str, Any]:
     """The incremental speed-up after the last loop closure of the Intel run (see the module docstring)."""
     from datasets.registry import open_dataset
-    from pipeline import mapping_stage as ms
+    from mapping.build import MapBuilder
     from pipeline.config import load_config
-    from pipeline.run import MAP_MARGIN_M, select_scans
-    from pipeline.scale import tiled_map
-    from slam import geometry as se2
-    from slam.keyframes import keyframe_of_scan
+    from pipeline.map_bounds import union_bounds
+    from pipeline.run import MAP_MARGIN_M
+    from slam.keyframes import scan_poses_from_keyframes
     from slam.system import run_slam_recording
 
     progress = progress or Progress()
     config = load_config(overrides={"mapping": {"mapper": "gpfol"}})
     cfg = config.mapping
+    builder = MapBuilder.from_config(cfg)
+    tiles = config.scale.tile_cells
     with progress.stage("bench incremental", total=4) as bar:
         rec = open_dataset(path, config.input)
         t0 = time.perf_counter()
@@ -317,32 +249,23 @@ def bench_incremental(progress: Progress | None = None, path: Path = INTEL_CLF) 
         last_scan = int(kf[q + 1] - 1) if q + 1 < len(kf) else len(rec.scans) - 1
         n = last_scan + 1
         odo = slam.poses_before_xytheta[:n]
-        owner = keyframe_of_scan(kf[: q + 1], n)
-        offset = se2.between(odo[kf[owner]], odo)
-        poses_before = se2.compose(kf_before[owner], offset)
-        poses_after = se2.compose(kf_after[owner], offset)
+        poses_before = scan_poses_from_keyframes(kf_before, kf[: q + 1], odo)
+        poses_after = scan_poses_from_keyframes(kf_after, kf[: q + 1], odo)
         scans = rec.scans.subset(np.arange(n))
         laser = rec.laser_in_base_xytheta
-        selected = select_scans(odo, laser, cfg)
-        beams_before = ms.make_beams(scans, poses_before, laser, cfg, selected)
-        beams_after = ms.make_beams(scans, poses_after, laser, cfg, selected)
-        params = ms.fit_params(beams_before, cfg)
-        bounds = ms.union_bounds(
-            beams_before.bounds_xy_m(MAP_MARGIN_M), beams_after.bounds_xy_m(MAP_MARGIN_M)
-        )
+        selected = builder.select_scans(odo, laser)
+        beams_before = builder.beams(scans, poses_before, laser, selected)
+        beams_after = builder.beams(scans, poses_after, laser, selected)
+        params = builder.fit(beams_before)
+        bounds = union_bounds(beams_before.bounds_xy_m(MAP_MARGIN_M), beams_after.bounds_xy_m(MAP_MARGIN_M))
         bar.advance()
-        m = tiled_map(beams_before, params, cfg, config.scale, bounds, None)
+        m = builder.tiled_map(beams_before, params, bounds, tiles)
         m.render_all()
         bar.advance()
         # online mapping: the map of every scan but the last ADDED_SCANS mapped ones, then those added
         last = selected[-ADDED_SCANS:]
-        prefix = tiled_map(
-            beams_before.subset(~np.isin(beams_before.scan_index, last)),
-            params,
-            cfg,
-            config.scale,
-            bounds,
-            None,
+        prefix = builder.tiled_map(
+            beams_before.subset(~np.isin(beams_before.scan_index, last)), params, bounds, tiles
         )
         prefix.render_all()
         t0 = time.perf_counter()
@@ -355,7 +278,7 @@ def bench_incremental(progress: Progress | None = None, path: Path = INTEL_CLF) 
         full_times = []
         for _ in range(2):  # twice (before and after the incremental runs below): the machine may be shared
             t0 = time.perf_counter()
-            full = tiled_map(beams_after, params, cfg, config.scale, bounds, None)
+            full = builder.tiled_map(beams_after, params, bounds, tiles)
             full.render_all()
             full_times.append(time.perf_counter() - t0)
             if len(full_times) == 1:

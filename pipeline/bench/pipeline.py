@@ -2,8 +2,8 @@
 
 One run of the whole pipeline (read, SLAM, training, maps before and after loop closure, every export) with
 the default configuration into a temporary folder: ``pipeline_intel_wall_s`` is its wall time and
-``pipeline_intel_realtime_factor`` the log's duration (2,691 s) divided by it; ``pipeline_intel_mapper`` names
-the mapper. Timings depend on the machine's load.
+``pipeline_intel_realtime_factor`` the log's duration divided by it; ``pipeline_intel_mapper`` names the
+mapper, ``pipeline_intel_stages_s`` the run's own stage timings. Timings depend on the machine's load.
 """
 
 from __future__ import annotations

@@ -1,7 +1,9 @@
 """``bench``: the performance figures of SPEC section 7, measured as benchmarks (never as timed tests).
 
-Each stage contributes one part, a function ``(progress) -> dict`` in its own module (mapping, SLAM, the full
-pipeline, scale); their keys are merged into one object with the keys of SPEC section 3 first.
+Each part is a function ``(progress) -> dict`` in its own module of this package: :mod:`.mapping` (GP and
+grid query rates), :mod:`.slam` (the SLAM stage), :mod:`.pipeline` (``run`` end to end) and :mod:`.scale`
+(a map larger than memory, incremental updates). They live apart from the product stages they time; their
+keys are merged into one object with the keys of SPEC section 3 first.
 """
 
 from __future__ import annotations
@@ -27,10 +29,10 @@ SPEC_KEYS = (
 
 # (module, function) of each part, run in this order.
 PARTS: tuple[tuple[str, str], ...] = (
-    ("pipeline.bench_mapping", "bench_mapping"),
-    ("pipeline.bench_slam", "bench_slam"),
-    ("pipeline.bench_pipeline", "bench_pipeline"),
-    ("pipeline.bench_scale", "bench_scale"),
+    ("pipeline.bench.mapping", "bench_mapping"),
+    ("pipeline.bench.slam", "bench_slam"),
+    ("pipeline.bench.pipeline", "bench_pipeline"),
+    ("pipeline.bench.scale", "bench_scale"),
 )
 
 
@@ -38,8 +40,8 @@ def peak_rss_mib() -> float:
     """Peak resident memory of this process (MiB).
 
     On Linux the high-water mark of its own memory (``VmHWM``): ``getrusage``'s max RSS of a process started
-    by ``fork`` + ``exec`` begins at its parent's resident size (measured: a child of a 640 MB parent reports
-    637 MB, its ``VmHWM`` 14 MB), so it cannot measure a child alone."""
+    by ``fork`` + ``exec`` begins at its parent's resident size, so it cannot measure a child alone (the
+    large-map benchmark runs in a child process; ``tests/test_scale.py`` checks this)."""
     status = Path("/proc/self/status")
     if status.is_file():
         for line in status.read_text().splitlines():

@@ -1,7 +1,7 @@
 """The SLAM part of ``bench`` (SPEC section 7): the SLAM stage on ``intel.clf`` and ``fr079.clf``.
 
 One full run of the SLAM stage per log with the default configuration (reading the log excluded). For each
-log NAME (``intel``: 13,631 scans, 2,691 s of data; ``fr079``: 4,934 scans, 1,061 s):
+log NAME:
 
 - ``slam_NAME_wall_s``: its wall time; ``slam_NAME_data_duration_s``: the time the log spans (first to last
   scan); ``slam_NAME_realtime_factor``: data duration / wall time;

@@ -1,6 +1,6 @@
-"""Benchmark part of the mapping stage (SPEC section 7): GPFOL and GPPOL query points per second on the Intel
-lab map at 0.1 m with 15 + 15 neighbours, end to end (neighbour search included), and occupancy-grid cells
-per second, with a breakdown of where the time goes.
+"""The mapping part of ``bench`` (SPEC section 7): GPFOL and GPPOL query points per second on the Intel lab
+map at 0.1 m with 15 + 15 neighbours, end to end (neighbour search included), and occupancy-grid cells per
+second, with a breakdown of where the time goes.
 
 GPPOL runs the default configuration (``mapping.gppol_kernel`` / ``gppol_expectation``) with the pose
 covariance of the Intel perturbation experiment, ``diag(0.1^2, 0.1^2, 0.02^2)`` for every scan (the
@@ -10,10 +10,11 @@ map), the neighbour search (shared with GPFOL) and the kernel expectations + sol
 times the other kernel-expectation choices on the first ``CHOICE_QUERIES`` cells of the same map (their
 AUCs are in the README / the GPPOL report, not measured here).
 
-The map covers the lab (the central 99.6% of the returns
-in x and y, grown by 1 m: 311 x 309 cells); the rate over the bounds of every return (a few are seen 15 m
-away through windows, 407 x 380 cells, much of it empty) is reported beside it. Numba compilation (or
-loading it from the cache) is timed apart, by a warm-up call on a few points, and excluded from the rates.
+The map covers the lab as in the mapping figures (:func:`pipeline.figure_data.robust_bounds`: the central
+99.6% of the returns in x and y, grown by 1 m; ``map_shape``); the rate over the bounds of every return (a
+few are seen far away through windows, much of that map empty) is reported beside it
+(``full_bounds_*``). Numba compilation (or loading it from the cache) is timed apart, by a warm-up call on a
+few points, and excluded from the rates.
 
 The machine may be shared: wall-clock rates are reported beside the CPU time the work took (CPU seconds
 summed over threads), whose rate ``*_per_cpu_s`` is less sensitive to other processes.
@@ -31,15 +32,14 @@ import numpy as np
 
 from datasets.errors import DatasetError
 from datasets.paths import SHARED_DATA_DIR
+from mapping.build import MapBuilder
 from mapping.core import gather_batch
 from mapping.gpmap import GPOccupancyMap, grid_centres, tile_order
 from pipeline.config import load_config
 from pipeline.evaluate_map import make_beams, reference_base_poses
-from pipeline.mapping_stage import build_gp_map, build_grid, fit_params, gaussian_inputs
+from pipeline.figure_data import INTEL_GFS_LOG, robust_bounds
 from pipeline.progress import Progress
 
-DATA_DIR = SHARED_DATA_DIR
-INTEL = "intel/intel.gfs.log"
 RESOLUTION_M = 0.1
 PERTURB_COV = np.diag([0.1**2, 0.1**2, 0.02**2])  # the Intel perturbation experiment's pose covariance
 CHOICE_QUERIES = 20_000
@@ -50,14 +50,6 @@ GPPOL_CHOICES = (  # (gppol_kernel, gppol_expectation, gppol_gh_level)
     ("nn", "gauss_hermite", 2),
     ("nn", "gauss_hermite", 3),
 )
-
-
-def robust_bounds(points_xy_m: np.ndarray, margin_m: float = 1.0, q: float = 0.2) -> tuple[float, ...]:
-    """Bounds of the central (100 - 2q)% of the points in x and y, grown by ``margin_m`` (drops the few
-    returns seen far away through windows)."""
-    lo = np.percentile(points_xy_m, q, axis=0) - margin_m
-    hi = np.percentile(points_xy_m, 100 - q, axis=0) + margin_m
-    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
 
 def _cpu_s() -> float:
@@ -80,7 +72,7 @@ def bench_mapping(progress: Progress | None = None, data_dir: Path | None = None
     from datasets.registry import open_dataset
 
     progress = progress or Progress()
-    path = (data_dir or DATA_DIR) / INTEL
+    path = (data_dir or SHARED_DATA_DIR) / INTEL_GFS_LOG
     if not path.is_file():
         raise DatasetError(f"{path}: benchmark data missing (shared data folder beside the checkout)")
     cfg = load_config().mapping
@@ -89,7 +81,7 @@ def bench_mapping(progress: Progress | None = None, data_dir: Path | None = None
         base = reference_base_poses(rec, path)
         beams = make_beams(rec, base, np.arange(len(rec.scans)), cfg)
         with _Timer() as t_train:
-            params = fit_params(beams, cfg, mapper="gpfol")
+            params = MapBuilder.from_config(cfg, "gpfol").fit(beams)
         bar.advance()
         with _Timer() as t_index:
             gp = GPOccupancyMap(beams, params, cfg.k_occupied, cfg.k_free, cfg.jitter, cfg.index_cell_m)
@@ -116,9 +108,9 @@ def bench_mapping(progress: Progress | None = None, data_dir: Path | None = None
         with _Timer() as t_full:
             full = gp.render(full_bounds, RESOLUTION_M)
         bar.advance()
-        build_grid(beams.subset(np.arange(10)), cfg, bounds)  # warm-up (compile / cache)
+        MapBuilder.from_config(cfg).grid(beams.subset(np.arange(10)), bounds)  # warm-up (compile / cache)
         with _Timer() as t_grid:
-            grid = build_grid(beams, cfg, bounds)
+            grid = MapBuilder.from_config(cfg).grid(beams, bounds)
         bar.advance()
         gppol = _bench_gppol(beams, cfg, bounds, pts, t_gather.wall)
         bar.advance()
@@ -166,9 +158,10 @@ def bench_mapping(progress: Progress | None = None, data_dir: Path | None = None
 
 def _gppol_map(beams: Any, cfg: Any, cov: np.ndarray) -> tuple[Any, Any, float]:
     """Trained GPPOL parameters, the map, and the seconds of the map build (UT of every beam + index)."""
-    params = fit_params(beams, cfg, mapper="gppol", cov_xytheta=cov)
+    builder = MapBuilder.from_config(cfg, "gppol")
+    params = builder.fit(beams, cov)
     with _Timer() as t_build:
-        gp = build_gp_map(beams, params, cfg, cov, mapper="gppol")
+        gp = builder.gp_map(beams, params, cov)
     return params, gp, t_build.wall
 
 
@@ -180,8 +173,9 @@ def _bench_gppol(
     cov = np.tile(PERTURB_COV, (n_scans, 1, 1))
     with _Timer() as t_train:
         params, gp, build_s = _gppol_map(beams, cfg, cov)
+    builder = MapBuilder.from_config(cfg, "gppol")
     with _Timer() as t_inputs:
-        gaussian_inputs(beams, cfg, cov, params.kernel)  # the UT of every beam alone
+        builder.gaussian_inputs(beams, cov, params.kernel)  # the UT of every beam alone
     gp.query(pts[:64], sort=False)  # compile / load from cache
     with _Timer() as t_map:
         gp.render(bounds, RESOLUTION_M)

@@ -1,0 +1,60 @@
+"""Where the maps of a run lie and how large they may be: their bounds, their size in cells, and the check of
+that size against ``scale.max_map_cells`` before anything is allocated."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from datasets.types import ScanSequence
+from mapping.build import Bounds
+from pipeline.errors import PipelineError
+
+__all__ = ["Bounds", "check_map_cells", "map_cells", "parse_numbers", "scan_reach_m", "union_bounds"]
+
+
+def parse_numbers(text: str, count: int) -> list[float] | None:
+    """``count`` comma-separated finite numbers of a command-line option, or None if ``text`` is not that."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        return None
+    return values if len(values) == count and all(np.isfinite(values)) else None
+
+
+def union_bounds(*bounds: Bounds) -> Bounds:
+    """The smallest box holding every box of ``bounds``."""
+    b = np.asarray(bounds, dtype=np.float64)
+    return float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())
+
+
+def map_cells(bounds: Bounds, resolution_m: float) -> tuple[int, int]:
+    """(width, height) in cells of a map over ``bounds`` at ``resolution_m`` (Python ints: never overflow)."""
+    xmin, ymin, xmax, ymax = bounds
+    return math.ceil((xmax - xmin) / resolution_m), math.ceil((ymax - ymin) / resolution_m)
+
+
+def check_map_cells(bounds: Bounds, resolution_m: float, max_cells: int, what: str) -> None:
+    """PipelineError, before any allocation, when a map over ``bounds`` at ``resolution_m`` would have more
+    than ``max_cells`` cells (``scale.max_map_cells``); ``what`` says which map (and how its bounds were
+    found) in the message."""
+    width, height = map_cells(bounds, resolution_m)
+    if width * height > max_cells:
+        size_x, size_y = bounds[2] - bounds[0], bounds[3] - bounds[1]
+        raise PipelineError(
+            f"{what}: {size_x:.4g} x {size_y:.4g} m at {resolution_m:g} m is {width} x {height} = "
+            f"{width * height:.3g} cells, above scale.max_map_cells = {max_cells:.3g} (choose a coarser "
+            "resolution or smaller bounds, or raise the limit in the configuration)"
+        )
+
+
+def scan_reach_m(scans: ScanSequence) -> float:
+    """The longest valid return of ``scans`` (m): the smallest map of a run covers one scan's disc of it."""
+    reach = 0.0
+    for r, lo, hi in zip(scans.ranges_m, scans.range_min_m, scans.range_max_m, strict=True):
+        with np.errstate(invalid="ignore"):
+            hits = r[(r >= lo) & (r < hi)]
+        if hits.size:
+            reach = max(reach, float(hits.max()))
+    return reach
