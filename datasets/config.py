@@ -2,9 +2,28 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class MovedKeyError(ValueError):
+    """A configuration key of a former flat section, now in a nested section: ``old`` -> ``new`` (dotted,
+    relative to the section)."""
+
+    def __init__(self, old: str, new: str) -> None:
+        super().__init__(f"'{old}' is now '{new}' (a nested section)")
+        self.old, self.new = old, new
+
+
+def refuse_moved_keys(data: Any, moved: dict[str, str]) -> Any:
+    """``data`` unchanged; MovedKeyError for the first of its keys that ``moved`` says went elsewhere (use
+    in a ``model_validator(mode="before")``)."""
+    if isinstance(data, dict):
+        for old, new in moved.items():
+            if old in data:
+                raise MovedKeyError(old, new)
+    return data
 
 
 class InputConfig(BaseModel):

@@ -69,13 +69,13 @@ class MapBuilder:
     # -- beams ------------------------------------------------------------------------------------------
 
     def select_scans(self, base_poses_xytheta: NDArray, laser_in_base_xytheta: NDArray) -> NDArray[np.int64]:
-        """Indices of the scans to map: a scan each ``scan_min_travel_m`` of laser travel or
-        ``scan_min_rotation_rad`` of turn along the laser poses of the (N, 3) base poses (in a run, the
+        """Indices of the scans to map: a scan each ``scan_selection.min_travel_m`` of laser travel or
+        ``min_rotation_rad`` of turn along the laser poses of the (N, 3) base poses (in a run, the
         odometry trajectory, so that the choice does not depend on loop closure)."""
         return select_scans_by_motion(
             compose_laser_poses(base_poses_xytheta, laser_in_base_xytheta),
-            self.cfg.scan_min_travel_m,
-            self.cfg.scan_min_rotation_rad,
+            self.cfg.scan_selection.min_travel_m,
+            self.cfg.scan_selection.min_rotation_rad,
         )
 
     def beams(
@@ -93,12 +93,12 @@ class MapBuilder:
             scans.subset(idx),
             np.asarray(base_poses_xytheta, dtype=np.float64)[idx],
             laser_in_base_xytheta,
-            no_return_free_length_m=cfg.no_return_free_length_m,
-            free_margin_m=cfg.free_margin_m,
+            no_return_free_length_m=cfg.free_space.no_return_length_m,
+            free_margin_m=cfg.free_space.margin_m,
             scan_indices=idx,
-            free_band_m=cfg.free_band_m,
-            free_band_per_m=cfg.free_band_per_m,
-            free_margin_max_m=cfg.free_margin_max_m,
+            free_band_m=cfg.free_space.band_m,
+            free_band_per_m=cfg.free_space.band_per_m,
+            free_margin_max_m=cfg.free_space.margin_max_m,
         )
 
     # -- GPPOL inputs -----------------------------------------------------------------------------------
@@ -114,22 +114,22 @@ class MapBuilder:
     def input_expectation(self, kernel: Kernel) -> InputExpectation:
         """How GPPOL integrates ``kernel`` over its inputs (``auto``: Girard's eq. 19 for SE, else
         Gauss-Hermite quadrature of eq. 23)."""
-        method = self.cfg.gppol_expectation
+        method = self.cfg.gppol.expectation
         if method == "auto":
             method = GIRARD if kernel.name == "se" else GAUSS_HERMITE
-        return InputExpectation(method, self.cfg.gppol_gh_level)
+        return InputExpectation(method, self.cfg.gppol.gh_level)
 
     def gaussian_inputs(self, beams: Beams, cov_xytheta: NDArray | None, kernel: Kernel) -> GaussianInputs:
         """The GPPOL inputs of ``beams``: the unscented transform of every beam under its scan's pose
         covariance and the per-source laser noise; the free points' inputs without range noise unless
         ``gppol_free_range_noise``."""
         cfg = self.cfg
-        ut = UTParams(cfg.ut_alpha, cfg.ut_beta, cfg.ut_kappa)
+        ut = UTParams(cfg.gppol.ut.alpha, cfg.gppol.ut.beta, cfg.gppol.ut.kappa)
         noise = self.sensor_noise(beams.source_names)
         try:
             moments = input_moments(beams, cov_xytheta, noise, ut)
             free = None
-            if not cfg.gppol_free_range_noise:
+            if not cfg.gppol.free_range_noise:
                 no_range = [SensorNoise(0.0, s.bearing_var_rad2) for s in noise]
                 free = input_moments(beams, cov_xytheta, no_range, ut)
         except ValueError as exc:
@@ -149,15 +149,15 @@ class MapBuilder:
 
     def fit(self, beams: Beams, cov_xytheta: NDArray | None = None, seed_offset: int = 0) -> GPParams:
         """Stored parameters if configured, else hyperparameters and PLS link learnt from the first
-        ``train_scans`` scans of ``beams``: GPFOL with ``cfg.kernel``; GPPOL with ``cfg.gppol_kernel`` on the
-        beams' input Gaussians. The training problems' free segments stop ``cfg.train_free_margin_m`` short
+        ``train.scans`` scans of ``beams``: GPFOL with ``cfg.kernel``; GPPOL with ``cfg.gppol.kernel`` on the
+        beams' input Gaussians. The training problems' free segments stop ``cfg.train.free_margin_m`` short
         of the endpoints if it is set (or each beam's grazing margin, kept from ``beams``, if larger).
         ``pls_link: holdout`` refits the link on held-out scans."""
         stored = self.stored_params()
         if stored is not None:
             return stored
         params = self._train(beams, cov_xytheta, seed_offset)
-        if self.cfg.pls_link == "holdout":
+        if self.cfg.pls.link == "holdout":
             params = self._holdout_link(params, beams, cov_xytheta, seed_offset)
         return params
 
@@ -165,15 +165,15 @@ class MapBuilder:
         """Hyperparameters and the leave-one-out PLS link learnt by :func:`mapping.train.train_gp`."""
         cfg = self.cfg
         gppol = self.mapper == "gppol"
-        kernel_name = cfg.gppol_kernel if gppol else cfg.kernel
+        kernel_name = cfg.gppol.kernel if gppol else cfg.kernel
         names = KERNELS[kernel_name].names
         bounds = {k: v for k, v in cfg.kernel_bounds.items() if k in names} or None
-        if cfg.train_free_margin_m is not None:
-            beams = beams.with_free_margin(cfg.train_free_margin_m)
+        if cfg.train.free_margin_m is not None:
+            beams = beams.with_free_margin(cfg.train.free_margin_m)
         inputs = None
         if gppol:
-            # training reads the first train_scans scans only (train_gp): their beams alone go through the UT
-            beams = beams.select_scans(np.unique(beams.scan_index)[: cfg.train_scans])
+            # training reads the first train.scans scans only (train_gp): their beams alone go through the UT
+            beams = beams.select_scans(np.unique(beams.scan_index)[: cfg.train.scans])
             inputs = self.gaussian_inputs(beams, cov_xytheta, make_kernel(kernel_name))
         try:
             return train_gp(
@@ -183,11 +183,11 @@ class MapBuilder:
                 noise_var=cfg.noise_var,
                 k_occ=cfg.k_occupied,
                 k_free=cfg.k_free,
-                n_scans=cfg.train_scans,
-                n_problems=cfg.train_problems,
-                maxfun=cfg.train_anneal_evaluations,
-                maxiter=cfg.train_lbfgs_iterations,
-                seed=cfg.train_seed + seed_offset,
+                n_scans=cfg.train.scans,
+                n_problems=cfg.train.problems,
+                maxfun=cfg.train.anneal_evaluations,
+                maxiter=cfg.train.lbfgs_iterations,
+                seed=cfg.train.seed + seed_offset,
                 index_cell_m=cfg.index_cell_m,
                 learn_noise=cfg.learn_noise,
                 inputs=inputs,
@@ -207,7 +207,7 @@ class MapBuilder:
             return self.gp_map(rest, params, cov_xytheta)
 
         fitted = holdout_link(
-            beams, build, cfg.pls_holdout_fraction, cfg.pls_holdout_block_scans, cfg.train_seed + seed_offset
+            beams, build, cfg.pls.holdout_fraction, cfg.pls.holdout_block_scans, cfg.train.seed + seed_offset
         )
         info = dict(params.info)
         loo = {"alpha": params.alpha, "beta": params.beta}

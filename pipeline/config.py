@@ -9,7 +9,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from datasets.config import InputConfig
+from datasets.config import InputConfig, MovedKeyError
 from datasets.errors import ConfigError
 from mapping.config import MappingConfig
 from pipeline.scale_config import ScaleConfig
@@ -76,6 +76,9 @@ def _format_validation_error(source: str, error: ValidationError) -> str:
     where = ".".join(str(p) for p in first["loc"]) or "(root)"
     if first["type"] == "extra_forbidden":
         return f"{source}: unknown configuration key '{_one_line(where)}'"
+    moved = (first.get("ctx") or {}).get("error")
+    if isinstance(moved, MovedKeyError):
+        return f"{source}: configuration key '{where}.{moved.old}' is now '{where}.{moved.new}'"
     value = first.get("input")
     shown, msg = _shown(value), _one_line(first["msg"])
     return f"{source}: invalid value {shown} for '{_one_line(where)}': {msg}"

@@ -6,9 +6,13 @@ world (see ``pipeline/evaluate_slam.py`` and the tests); the units are in the na
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from datasets.config import refuse_moved_keys
+
+RobustKernel = Literal["cauchy", "huber", "dcs", "none"]
 
 
 class OdometryConfig(BaseModel):
@@ -264,7 +268,7 @@ class LoopClosureConfig(BaseModel):
         "the targets within this distance in the optimised graph (0: off)",
     )
     dense_targets: int = Field(2, ge=1, le=20, description="... at most this many, nearest first")
-    robust_kernel: Literal["cauchy", "huber", "dcs", "none"] = Field(
+    robust_kernel: RobustKernel = Field(
         "huber",
         description="robust loss of loop-closure factors: Huber is convex, so a true closure that corrects "
         "a large drift still pulls (a redescending loss such as Cauchy leaves it stuck as an 'outlier' "
@@ -325,6 +329,39 @@ class GraphConfig(BaseModel):
     max_iterations: int = Field(100, ge=1, description="Levenberg-Marquardt iterations")
 
 
+class CloudLoopClosureConfig(BaseModel):
+    """Loop closure of 3D inputs: point-to-point ICP between keyframe clouds, gated, with a robust loss.
+    The 2D search of :class:`LoopClosureConfig` does not apply to clouds; names of shared meaning match."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    search_radius_m: float = Field(
+        10.0, ge=0, description="loop candidates: keyframes within this distance (plus 3 sigma)"
+    )
+    min_separation_m: float = Field(30.0, ge=0, description="least travel between the two keyframes")
+    max_rms_m: float = Field(0.2, gt=0, description="largest point-to-point RMS of a verified closure")
+    min_inlier_fraction: float = Field(
+        0.5, ge=0, le=1, description="least fraction of query points near the target after alignment"
+    )
+    consistency_chi2: float = Field(
+        100.0, gt=0, description="Mahalanobis gate of the found relative pose against the prediction (6 dof)"
+    )
+    robust_kernel: RobustKernel = Field("cauchy", description="robust loss of 3D loop-closure factors")
+    robust_kernel_width: float = Field(1.0, gt=0, description="kernel width in whitened (sigma) units")
+
+
+#: Where the former flat loop-closure keys of the ``cloud`` section live now.
+CLOUD_MOVED_KEYS: dict[str, str] = {
+    "loop_search_radius_m": "loop_closure.search_radius_m",
+    "loop_min_separation_m": "loop_closure.min_separation_m",
+    "loop_max_rms_m": "loop_closure.max_rms_m",
+    "loop_min_inlier_fraction": "loop_closure.min_inlier_fraction",
+    "loop_consistency_chi2": "loop_closure.consistency_chi2",
+    "robust_kernel": "loop_closure.robust_kernel",
+    "robust_kernel_width": "loop_closure.robust_kernel_width",
+}
+
+
 class CloudOdometryConfig(BaseModel):
     """3D inputs (point clouds): KISS-ICP odometry on the clouds as they are, and the ``Pose3`` graph."""
 
@@ -346,21 +383,12 @@ class CloudOdometryConfig(BaseModel):
     odometry_cov_scale: float = Field(
         1.0, gt=0, description="scale of the registration covariances in the odometry factors"
     )
-    loop_search_radius_m: float = Field(
-        10.0, ge=0, description="loop candidates: keyframes within this distance (plus 3 sigma)"
-    )
-    loop_min_separation_m: float = Field(30.0, ge=0, description="least travel between the two keyframes")
-    loop_max_rms_m: float = Field(0.2, gt=0, description="largest point-to-point RMS of a verified closure")
-    loop_min_inlier_fraction: float = Field(
-        0.5, ge=0, le=1, description="least fraction of query points near the target after alignment"
-    )
-    loop_consistency_chi2: float = Field(
-        100.0, gt=0, description="Mahalanobis gate of the found relative pose against the prediction (6 dof)"
-    )
-    robust_kernel: Literal["cauchy", "huber", "dcs", "none"] = Field(
-        "cauchy", description="robust loss of 3D loop-closure factors"
-    )
-    robust_kernel_width: float = Field(1.0, gt=0, description="kernel width in whitened (sigma) units")
+    loop_closure: CloudLoopClosureConfig = Field(default_factory=CloudLoopClosureConfig)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _moved_keys(cls, data: Any) -> Any:
+        return refuse_moved_keys(data, CLOUD_MOVED_KEYS)
 
 
 class SlamConfig(BaseModel):

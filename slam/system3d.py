@@ -9,12 +9,12 @@ covariances that the 2D mapper uses with the height-band scans (``Recording.scan
   ``sigma`` the residual RMS (floored): the noise of the odometry factor of that increment.
 - Keyframes by travel and rotation; between keyframes the increments and their covariances are composed
   (``C_ab = Ad(T_b^-1) C_a Ad(T_b^-1)^T + C_b``).
-- Loop closures (the 2D design): candidates are keyframes at least ``loop_min_separation_m`` of travel
-  back whose predicted distance exceeds ``loop_search_radius_m`` by no more than 3.4 sigma of the chain's
-  relative position uncertainty (its largest eigenvalue; chi2 3 dof 99%); verification registers the
-  query keyframe's cloud against the target's
-  with KISS-ICP's registration, then gates the inlier fraction, the RMS and the consistency of the result
-  with the prediction (6-dof chi2); accepted closures enter with a robust (Cauchy) loss.
+- Loop closures (the 2D design): candidates are keyframes at least ``loop_closure.min_separation_m`` of
+  travel back whose predicted distance exceeds ``loop_closure.search_radius_m`` by no more than 3.4 sigma
+  of the chain's relative position uncertainty (its largest eigenvalue; chi2 3 dof 99%); verification
+  registers the query keyframe's cloud against the target's with KISS-ICP's registration, then gates
+  the inlier fraction, the RMS and the consistency of the result with the prediction (6-dof chi2);
+  accepted closures enter with a robust (Cauchy) loss.
 - The batch optimisation (Levenberg-Marquardt) and the marginals of every keyframe.
 
 The result is a :class:`slam.result.SlamResult` like the 2D one (SE(2) projections in its 2D fields), with
@@ -241,22 +241,22 @@ def run_slam_clouds(
     with stage(progress, "loop closure (3D)", k_count) as bar:
         for k in range(k_count):
             for j in range(k):
-                if path[k] - path[j] < cfg.loop_min_separation_m:
+                if path[k] - path[j] < cfg.loop_closure.min_separation_m:
                     break
                 guess = relative_se3(poses[kf[j]], poses[kf[k]])
                 dist = float(np.linalg.norm(guess[:3, 3]))
-                if dist > cfg.loop_search_radius_m + 50.0:
+                if dist > cfg.loop_closure.search_radius_m + 50.0:
                     continue
                 c_rel = _chain_cov(poses, inc_cov, int(kf[j]), int(kf[k]))
                 pos_cov = c_rel[3:, 3:]
-                slack = max(dist - cfg.loop_search_radius_m, 0.0)
+                slack = max(dist - cfg.loop_closure.search_radius_m, 0.0)
                 if slack > 0 and slack**2 > chi2_3 * float(np.max(np.linalg.eigvalsh(pos_cov))):
                     continue
                 found, cov, frac, rms = verify_closure(sources[kf[k]], sources[kf[j]], guess, cfg, voxel)
                 dev = np.asarray(gtsam.Pose3.Logmap(pose3(guess).between(pose3(found))))
                 d2 = float(dev @ np.linalg.solve(c_rel + cov, dev))
-                ok = frac >= cfg.loop_min_inlier_fraction and rms <= cfg.loop_max_rms_m
-                ok = ok and d2 <= cfg.loop_consistency_chi2
+                ok = frac >= cfg.loop_closure.min_inlier_fraction and rms <= cfg.loop_closure.max_rms_m
+                ok = ok and d2 <= cfg.loop_closure.consistency_chi2
                 closure = LoopClosure(
                     query_keyframe=k,
                     target_keyframe=j,
@@ -279,8 +279,8 @@ def run_slam_clouds(
                         k,
                         found,
                         cov,
-                        robust=cfg.robust_kernel,
-                        robust_width=cfg.robust_kernel_width,
+                        robust=cfg.loop_closure.robust_kernel,
+                        robust_width=cfg.loop_closure.robust_kernel_width,
                     )
                     edges.append(
                         Edge(
@@ -289,8 +289,8 @@ def run_slam_clouds(
                             k,
                             project_pose_se2(found),
                             _cov_se2_of_body(cov),
-                            cfg.robust_kernel,
-                            cfg.robust_kernel_width,
+                            cfg.loop_closure.robust_kernel,
+                            cfg.loop_closure.robust_kernel_width,
                         )
                     )
                     break

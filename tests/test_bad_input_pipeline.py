@@ -30,7 +30,7 @@ from pipeline.run import run_pipeline
 from pipeline.run_folder import remove_stale_staging, staged_run_folder, write_summary
 from tests.conftest import REPO, data_file
 
-FAST = {"mapping": {"train_anneal_evaluations": 10, "train_lbfgs_iterations": 10, "mapper": "gpfol"}}
+FAST = {"mapping": {"train": {"anneal_evaluations": 10, "lbfgs_iterations": 10}, "mapper": "gpfol"}}
 
 
 def _config(folder: Path, overrides: dict) -> Path:
@@ -204,7 +204,10 @@ def test_a_gtsam_failure_in_slam_is_one_line_naming_the_input(small_log, tmp_pat
 
 def test_gp_training_failure_names_the_input(small_log, tmp_path) -> None:
     """200 occupied neighbours per query cannot be found in the first scan: the message says of which file."""
-    cfg = _config(tmp_path, {"mapping": {"k_occupied": 200, "k_free": 200, "train_scans": 1}})
+    cfg = _config(
+        tmp_path,
+        {"mapping": {"k_occupied": 200, "k_free": 200, "train": {"scans": 1, "anneal_evaluations": 10}}},
+    )
     with pytest.raises(GpomError, match=rf"^{small_log}: cannot train the GP: no training neighbourhood"):
         run_pipeline(small_log, tmp_path / "r", config_path=cfg)
 

@@ -34,8 +34,27 @@ def test_yaml_round_trip(tmp_path) -> None:
             "mapping:\n  kernel_bounds:\n    sigam: [0.1, 10]\n",
             r"kernel_bounds\.sigam: no such hyperparameter of the nn or se",
         ),
+        # the keys of the former flat mapping section name their new, nested place
+        (
+            "mapping:\n  train_scans: 10\n",
+            r"^\S+c\.yaml: configuration key 'mapping\.train_scans' is now 'mapping\.train\.scans'$",
+        ),
+        ("mapping:\n  ut_kappa: 1\n", r"'mapping\.ut_kappa' is now 'mapping\.gppol\.ut\.kappa'$"),
+        (
+            "mapping:\n  gppol:\n    kernel: nn\n    expectation: girard\n",
+            r"'girard' is the SE kernel's closed form",
+        ),
     ],
-    ids=["unknown-key", "unknown-stage", "out-of-range", "not-yaml", "misspelt-kernel-bound"],
+    ids=[
+        "unknown-key",
+        "unknown-stage",
+        "out-of-range",
+        "not-yaml",
+        "misspelt-kernel-bound",
+        "moved-key",
+        "moved-nested-key",
+        "girard-needs-se",
+    ],
 )
 def test_bad_config_is_rejected_with_one_line(tmp_path, text: str, message: str) -> None:
     path = tmp_path / "c.yaml"
@@ -56,3 +75,15 @@ def test_kernel_bounds_of_either_configured_kernel_are_accepted(tmp_path) -> Non
     path.write_text("mapping:\n  kernel_bounds:\n    sigma: [0.1, 10]\n    length_scale: [0.1, 5]\n")
     bounds = load_config(path).mapping.kernel_bounds
     assert bounds == {"sigma": (0.1, 10.0), "length_scale": (0.1, 5.0)}
+
+
+def test_every_moved_key_points_at_an_existing_field() -> None:
+    """Each hint of a former flat key names a field that exists, with that field's default."""
+    from mapping.config import MOVED_KEYS, MappingConfig
+
+    cfg = MappingConfig()
+    for new in MOVED_KEYS.values():
+        obj = cfg
+        for part in new.split("."):
+            assert part in type(obj).model_fields, new
+            obj = getattr(obj, part)

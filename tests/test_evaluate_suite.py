@@ -22,7 +22,7 @@ from pipeline.progress import Progress
 from slam import geometry as se2
 from tests.conftest import REPO, data_file
 
-FAST = {"train_anneal_evaluations": 40, "train_lbfgs_iterations": 40, "train_problems": 48}
+FAST = {"train": {"anneal_evaluations": 40, "lbfgs_iterations": 40, "problems": 48}}
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:

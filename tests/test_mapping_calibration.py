@@ -112,7 +112,7 @@ def test_holdout_link_predicts_unseen_scans_better_than_loo_on_a_real_log() -> N
     rec = open_dataset(data_file("radish-corrected/seattle-corrected.log.gz"))
     poses = np.asarray(rec.reference.poses_xytheta)
     loo_cfg = MappingConfig(mapper="gpfol")
-    hold_cfg = loo_cfg.model_copy(update={"pls_link": "holdout"})
+    hold_cfg = MappingConfig(mapper="gpfol", pls={"link": "holdout"})
     loo_builder, hold_builder = MapBuilder.from_config(loo_cfg), MapBuilder.from_config(hold_cfg)
     train = loo_builder.beams(rec.scans, poses, rec.laser_in_base_xytheta, np.arange(200))
     test = loo_builder.beams(rec.scans, poses, rec.laser_in_base_xytheta, np.arange(200, len(rec.scans)))

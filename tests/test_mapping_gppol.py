@@ -18,7 +18,7 @@ from pipeline.errors import PipelineError
 from pipeline.progress import Progress
 from tests.conftest import data_file
 
-FAST = {"train_anneal_evaluations": 40, "train_lbfgs_iterations": 40, "train_problems": 48}
+FAST = {"train": {"anneal_evaluations": 40, "lbfgs_iterations": 40, "problems": 48}}
 
 
 @pytest.fixture(scope="module")

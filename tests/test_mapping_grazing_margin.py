@@ -130,7 +130,7 @@ def test_train_margin_subsets_and_gppol_free_points_follow_the_grazing_margin() 
     np.testing.assert_array_equal(joined.grazing_margin_m, narrow.grazing_margin_m)
     # the configuration reaches the beams the pipeline makes
     seq = ScanSequence(ranges, angles, np.arange(3), 0.1, 20.0)
-    cfg = MappingConfig(free_margin_m=0.1, free_band_m=0.05, free_band_per_m=0.01, free_margin_max_m=2.0)
+    cfg = MappingConfig(free_space={"margin_m": 0.1, "band_m": 0.05, "band_per_m": 0.01, "margin_max_m": 2.0})
     made = MapBuilder.from_config(cfg).beams(seq, poses, np.zeros(3))
     direct = beams_from_scan_sequence(
         seq, poses, None, 2.0, 0.1, free_band_m=0.05, free_band_per_m=0.01, free_margin_max_m=2.0

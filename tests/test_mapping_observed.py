@@ -27,7 +27,7 @@ from pipeline.evaluate_map import evaluate_ground_truth, evaluate_holdout, make_
 from pipeline.progress import Progress
 from tests.conftest import data_file
 
-FAST = {"train_anneal_evaluations": 40, "train_lbfgs_iterations": 40, "train_problems": 48}
+FAST = {"train": {"anneal_evaluations": 40, "lbfgs_iterations": 40, "problems": 48}}
 
 
 def make_test_beams(origins, ends, free_ends, is_hit) -> Beams:

@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+import yaml
 
 from datasets.registry import open_dataset
 from mapping.build import MapBuilder
@@ -18,7 +19,7 @@ from pipeline.evaluate_map import evaluate_holdout, make_beams, reference_laser_
 from pipeline.progress import Progress
 from tests.conftest import REPO, data_file
 
-FAST = {"train_anneal_evaluations": 40, "train_lbfgs_iterations": 40, "train_problems": 48}
+FAST = {"train": {"anneal_evaluations": 40, "lbfgs_iterations": 40, "problems": 48}}
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +76,7 @@ def test_street_world_ground_truth_protocol(tmp_path) -> None:
 @pytest.mark.slow
 def test_cli_evaluate_map_json_on_intel(tmp_path) -> None:
     cfg = tmp_path / "fast.yaml"
-    cfg.write_text("mapping:\n" + "".join(f"  {k}: {v}\n" for k, v in FAST.items()))
+    cfg.write_text(yaml.safe_dump({"mapping": FAST}))
     result = subprocess.run(
         [sys.executable, "run.py", "evaluate", "map", str(data_file("intel/intel.gfs.log")), "--seed", "1",
          "--config", str(cfg), "--json"],

@@ -117,14 +117,18 @@ def test_training_uses_train_free_margin_and_the_map_keeps_its_own() -> None:
     def fit_params(beams, cfg, mapper):
         return MapBuilder.from_config(cfg, mapper).fit(beams)
 
-    budget = {"train_scans": 10, "train_problems": 12, "train_anneal_evaluations": 20, "pls_link": "loo"}
-    budget["train_lbfgs_iterations"] = 10
+    train = {"scans": 10, "problems": 12, "anneal_evaluations": 20, "lbfgs_iterations": 10}
+    budget = {"pls": {"link": "loo"}}
     narrow = random_beams(8, n_scans=20)  # free segments stop 0.1 m short
     wide = narrow.with_free_margin(0.6)
-    cfg = MappingConfig(free_margin_m=0.1, train_free_margin_m=0.6, **budget)
+    cfg = MappingConfig(free_space={"margin_m": 0.1}, train={**train, "free_margin_m": 0.6}, **budget)
     split = fit_params(narrow, cfg, mapper="gpfol")
-    plain = fit_params(wide, MappingConfig(free_margin_m=0.6, **budget), mapper="gpfol")
+    plain = fit_params(
+        wide, MappingConfig(free_space={"margin_m": 0.6}, train=train, **budget), mapper="gpfol"
+    )
     np.testing.assert_allclose(split.kernel.theta, plain.kernel.theta, rtol=1e-9)
     assert (split.alpha, split.beta) == pytest.approx((plain.alpha, plain.beta), rel=1e-9)
-    same = fit_params(narrow, MappingConfig(free_margin_m=0.1, **budget), mapper="gpfol")
+    same = fit_params(
+        narrow, MappingConfig(free_space={"margin_m": 0.1}, train=train, **budget), mapper="gpfol"
+    )
     assert not np.allclose(same.kernel.theta, split.kernel.theta, rtol=1e-3)

@@ -24,7 +24,7 @@ from pipeline.run import run_pipeline
 from tests.conftest import REPO, data_file
 from tests.layer_checks import assert_same_map
 
-FAST_TRAINING = {"mapping": {"train_anneal_evaluations": 20, "train_lbfgs_iterations": 20}}
+FAST_TRAINING = {"mapping": {"train": {"anneal_evaluations": 20, "lbfgs_iterations": 20}}}
 
 SPEC_FILES = [
     "config.yaml",

@@ -2,7 +2,7 @@
 map at 0.1 m with 15 + 15 neighbours, end to end (neighbour search included), and occupancy-grid cells per
 second, with a breakdown of where the time goes.
 
-GPPOL runs the default configuration (``mapping.gppol_kernel`` / ``gppol_expectation``) with the pose
+GPPOL runs the default configuration (``mapping.gppol.kernel`` / ``mapping.gppol.expectation``) with the pose
 covariance of the Intel perturbation experiment, ``diag(0.1^2, 0.1^2, 0.02^2)`` for every scan (the
 Hilbert-maps reference's ``perturb_data``; the rate does not depend on the covariance's size), and the
 configured laser noise. Its breakdown: the unscented transform of every beam (``gppol_inputs_s``, once per
@@ -43,7 +43,7 @@ from pipeline.progress import Progress
 RESOLUTION_M = 0.1
 PERTURB_COV = np.diag([0.1**2, 0.1**2, 0.02**2])  # the Intel perturbation experiment's pose covariance
 CHOICE_QUERIES = 20_000
-GPPOL_CHOICES = (  # (gppol_kernel, gppol_expectation, gppol_gh_level)
+GPPOL_CHOICES = (  # (mapping.gppol.kernel, .expectation, .gh_level)
     ("se", "girard", 3),
     ("se", "gauss_hermite", 3),
     ("nn", "sigma_points", 3),
@@ -203,9 +203,8 @@ def _bench_gppol_choices(beams: Any, cfg: Any, pts: np.ndarray) -> list[dict[str
     cov = np.tile(PERTURB_COV, (n_scans, 1, 1))
     out = []
     for kernel, method, level in GPPOL_CHOICES:
-        c = cfg.model_copy(
-            update={"gppol_kernel": kernel, "gppol_expectation": method, "gppol_gh_level": level}
-        )
+        choice = {"kernel": kernel, "expectation": method, "gh_level": level}
+        c = cfg.model_copy(update={"gppol": cfg.gppol.model_copy(update=choice)})
         _, gp, _ = _gppol_map(beams, c, cov)
         gp.query(pts[:64], sort=False)  # compile / load from cache
         with _Timer() as t:

@@ -85,8 +85,8 @@ def large_map_child(
         0.05,
         CITY_RANGE_MAX_M,
         poses,
-        no_return_free_length_m=cfg.no_return_free_length_m,
-        free_margin_m=cfg.free_margin_m,
+        no_return_free_length_m=cfg.free_space.no_return_length_m,
+        free_margin_m=cfg.free_space.margin_m,
     )
     del ranges
     t_world = time.perf_counter() - t_start
