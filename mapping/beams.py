@@ -10,16 +10,15 @@ behind a wall is not given a free point lying on the wall's own occupied endpoin
 
 A beam that meets a surface at a grazing angle gamma (between the beam and the surface) runs within a band of
 half-width delta of that surface for the last delta / sin(gamma) of its length, so a fixed margin lets it free
-the surface it grazes (issue 14). With a band (``grazing_margins_m``: delta(r) = ``band_m`` + r
+the surface it grazes. With a band (``grazing_margins_m``: delta(r) = ``band_m`` + r
 ``band_per_m``, the beam's spread and range noise) the free part of a return stops max(``free_margin_m``,
 delta(r) / sin(gamma)) short of its endpoint, the grazing term capped at ``max_m`` and never past the beam's
 start. The surface direction at a return is the chord between its neighbouring returns in the same scan; a
 return without both neighbours, or at a depth edge or corner, keeps the plain margin.
 
-For GPPOL (issue 5) each beam keeps what the unscented transform (:mod:`mapping.unscented`) needs: its
+For GPPOL each beam keeps what the unscented transform (:mod:`mapping.unscented`) needs: its
 measured range and bearing in the laser frame, the laser's heading, the laser mounting on the base (so that
-the
-base pose, whose covariance SLAM gives, is recovered exactly), the index of its scan (the caller's pose
+the base pose, whose covariance SLAM gives, is recovered exactly), the index of its scan (the caller's pose
 covariances are indexed by it) and its sensor (per-source noise settings).
 """
 

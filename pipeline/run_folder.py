@@ -25,9 +25,9 @@ from pipeline.errors import PipelineError
 SUMMARY_NAME = "summary.json"
 
 
-#: Free space a run folder needs at least, checked before any work (bytes): the demo's run folder (a
-#: simulated 120 x 50 m loop, two 0.1 m maps of 640k cells with every export) takes 32 MB, so below this floor
-#: even a small run cannot finish. A disk that fills up later is still a one-line error (the stages' I/O
+#: Free space a run folder needs at least, checked before any work (bytes): about twice the demo's run folder
+#: (two 0.1 m maps of a 120 x 50 m loop with every export), so below this floor even a small run cannot
+#: finish. A disk that fills up later is still a one-line error (the stages' I/O
 #: errors are translated) and leaves nothing behind.
 MIN_FREE_BYTES = 64 * 2**20
 

@@ -1,4 +1,4 @@
-"""Bad input to the pipeline stages (issue 15): resources checked before work, output folders that cannot be
+"""Bad input to the pipeline stages: resources checked before work, output folders that cannot be
 written, staging folders of killed runs, damaged run folders for ``remap``, library exceptions turned into one
 line at the stage boundary, messages that name the file.
 

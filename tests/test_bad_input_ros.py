@@ -1,4 +1,4 @@
-"""Bad ROS1 / ROS2 input (issue 15): every defect a user's file can trigger is one DatasetError line.
+"""Bad ROS1 / ROS2 input: every defect a user's file can trigger is one DatasetError line.
 
 Each test writes a small valid bag with rosbags' own writers in ``tmp_path``, damages it in one precise way
 and checks the error. The bag builders here are shared with the fuzzing harness

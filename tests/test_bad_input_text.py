@@ -1,4 +1,4 @@
-"""Bad text input (issue 15): each defect once found in a text reader, as a small deterministic case.
+"""Bad text input: each defect once found in a text reader, as a small deterministic case.
 
 Every case must end in a one-line :class:`~datasets.errors.GpomError` naming the file (and the line or field
 where there is one), never in a foreign exception, a warning, a hang or a recording that fails validation.

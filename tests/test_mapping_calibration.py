@@ -1,4 +1,4 @@
-"""The PLS link fitted on held-out scans (issue 14): the split, the labelled points, the fit, and on a real
+"""The PLS link fitted on held-out scans: the split, the labelled points, the fit, and on a real
 log that it predicts an independent hold-out split better than the leave-one-out link."""
 
 from __future__ import annotations

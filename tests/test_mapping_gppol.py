@@ -1,4 +1,4 @@
-"""GPPOL (issue 5) end to end: the compiled core against the numpy reference, the two-platform world (the
+"""GPPOL end to end: the compiled core against the numpy reference, the two-platform world (the
 paper's dataset II) and the Intel lab with perturbed poses."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Free margins that grow where a beam grazes its surface (issue 14): delta(r) / sin(gamma), the floor, the
+"""Free margins that grow where a beam grazes its surface: delta(r) / sin(gamma), the floor, the
 fallbacks, and the paths that rebuild free segments (train margin, subsets, GPPOL's free points)."""
 
 from __future__ import annotations

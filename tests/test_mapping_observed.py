@@ -1,4 +1,4 @@
-"""Observed cells (issue 14): which test points lie in a cell some training beam touched, and the split of
+"""Observed cells: which test points lie in a cell some training beam touched, and the split of
 the map protocols' AUCs by it (hand-made beams, random beams against an exact segment-box test, the Intel
 hold-out of seed 0, a simulated world's raster)."""
 

@@ -1,4 +1,4 @@
-"""The full pipeline (issue 7): run folders, exports read back, remap, interruption, errors.
+"""The full pipeline: run folders, exports read back, remap, interruption, errors.
 
 One simulated ``loop`` run is shared by the module (it takes about a minute); the Intel and scans-only
 runs are marked slow.

@@ -1,4 +1,4 @@
-"""Tiled and incremental maps (issue 8): exact tile supports, tiled == untiled, incremental == full
+"""Tiled and incremental maps: exact tile supports, tiled == untiled, incremental == full
 recomputation (added scans, a loop closure), the on-disk tile store, and the Dask engine on the Intel map."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The Dask engine (issue 8): a local cluster of two worker processes renders the Intel map (intel.gfs.log,
+"""The Dask engine: a local cluster of two worker processes renders the Intel map (intel.gfs.log,
 corrected poses, 0.1 m) as the serial path and the untiled map do (to 2 float32 ulps); a bad scheduler
 address is one clear error."""
 

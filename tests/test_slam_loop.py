@@ -20,9 +20,8 @@ from slam.config import SlamConfig
 from slam.system import SlamResult, run_slam, wheel_poses_at_scans
 from slam.trajectory_io import read_g2o, write_g2o
 
-#: Known gaps, asserted to stay where they are (then marked xfail). Issue 6 left seed 2's ATE after loop
-#: closure at 0.056 m and seed 1's mean NEES at 0.96; with issue 13's odometry and loop search they are
-#: 0.0495 m and 1.3 (seed 2 only just: its along-track errors over 200 m of the loop are barely located).
+#: Known gaps, asserted to stay where they are (then marked xfail); none at present (seed 2's ATE after loop
+#: closure is only just under 5 cm: its along-track errors over 200 m of the loop are barely located).
 ABOVE_5_CM: dict[int, float] = {}
 NEES_BELOW_1: dict[int, float] = {}
 
@@ -46,8 +45,8 @@ def test_loop_closure_brings_the_ate_below_5_cm(loop_run) -> None:
     if seed in ABOVE_5_CM:
         assert ate_before >= 4 * ate_after
         assert 0.05 < ate_after <= ABOVE_5_CM[seed]
-        pytest.xfail(f"seed {seed}: ATE after {ate_after:.3f} m > 0.05 m (known gap of issue 6)")
-    assert ate_before >= 5 * ate_after  # issue 6's criterion: before vs after loop closure
+        pytest.xfail(f"seed {seed}: ATE after {ate_after:.3f} m > 0.05 m (a known gap)")
+    assert ate_before >= 5 * ate_after  # the criterion: before vs after loop closure
     assert ate_after <= 0.05
 
 
@@ -60,7 +59,7 @@ def test_covariances_are_consistent_with_the_real_errors(loop_run) -> None:
     assert nees_before <= 6.0  # the chain alone is not overconfident either
     if seed in NEES_BELOW_1:
         assert NEES_BELOW_1[seed] <= nees_after < 1.0
-        pytest.xfail(f"seed {seed}: mean NEES after {nees_after:.2f} < 1 (known gap of issue 6)")
+        pytest.xfail(f"seed {seed}: mean NEES after {nees_after:.2f} < 1 (a known gap)")
     assert 1.0 <= nees_after <= 6.0
 
 

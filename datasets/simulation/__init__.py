@@ -1,4 +1,4 @@
-"""Simulated worlds with exact ground truth, written as ROS bags (issue 3).
+"""Simulated worlds with exact ground truth, written as ROS bags.
 
 - :func:`make_world` ``(name, seed) -> SimulatedRun``: in memory, without a bag -- the
   :class:`~datasets.types.Recording` a reader would return, the world's polygons, the ground-truth raster
