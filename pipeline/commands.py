@@ -110,19 +110,23 @@ def cmd_demo(args: argparse.Namespace, emit_json: EmitJson) -> int:
 
 
 def cmd_run(args: argparse.Namespace, emit_json: EmitJson) -> int:
+    from pipeline.config import load_config
     from pipeline.run import run_pipeline
 
+    config = load_config(
+        args.config,
+        {
+            "input": {"scan_topic": args.scan_topic, "odom_topic": args.odom_topic},
+            "mapping": {"resolution_m": args.resolution, "mapper": args.mapper},
+            "scale": {"scheduler": args.scheduler},
+        },
+    )
     result = run_pipeline(
-        input_path=args.input,
-        out_dir=args.out,
-        config_path=args.config,
-        scan_topic=args.scan_topic,
-        odom_topic=args.odom_topic,
-        resolution_m=args.resolution,
-        mapper=args.mapper,
+        args.input,
+        args.out,
+        config,
         overwrite=args.overwrite,
         progress=progress_for_terminal(args.quiet or args.json),
-        scheduler=args.scheduler,
     )
     return _report(result, args, emit_json, f"run {args.input}")
 

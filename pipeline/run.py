@@ -154,29 +154,17 @@ def tiles_summary(maps: dict[str, IncrementalMap], config: Config) -> dict[str, 
 def run_pipeline(
     input_path: Path,
     out_dir: Path | None = None,
-    config_path: Path | None = None,
-    scan_topic: str | None = None,
-    odom_topic: str | None = None,
-    resolution_m: float | None = None,
-    mapper: str | None = None,
+    config: Config | None = None,
     overwrite: bool = False,
     progress: Progress | None = None,
-    scheduler: str | None = None,
 ) -> dict[str, Any]:
-    """The full pipeline on one recording; writes the run folder ``out_dir`` and returns its summary.
-    ``scheduler``: where map tiles are rendered (``"local"``, a Dask address; default: the configuration).
-    """
+    """The full pipeline on one recording with ``config`` (default: ``pipeline/default.yaml``; the command
+    line builds it with :func:`pipeline.config.load_config` from ``--config`` and its options); writes the
+    run folder ``out_dir`` (default ``out/<input name>``) and returns its summary."""
     progress = progress or Progress()
     timer = StageTimer()
     input_path = Path(input_path)
-    config = load_config(
-        config_path,
-        {
-            "input": {"scan_topic": scan_topic, "odom_topic": odom_topic},
-            "mapping": {"resolution_m": resolution_m, "mapper": mapper},
-            "scale": {"scheduler": scheduler},
-        },
-    )
+    config = config if config is not None else load_config()
     out_dir = Path(out_dir) if out_dir is not None else Path("out") / input_path.name.split(".")[0]
     guess_format(input_path)  # a missing or unknown input fails before anything else
     check_output_dir(out_dir, overwrite)
@@ -361,4 +349,5 @@ def run_demo(
     if not bag.exists():
         bag.parent.mkdir(parents=True, exist_ok=True)
         simulate("loop", bag, seed=seed)
-    return run_pipeline(bag, run_dir, overwrite=overwrite, progress=progress, scheduler=scheduler)
+    config = load_config(overrides={"scale": {"scheduler": scheduler}})
+    return run_pipeline(bag, run_dir, config, overwrite=overwrite, progress=progress)

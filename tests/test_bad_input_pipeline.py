@@ -24,6 +24,7 @@ import yaml
 from datasets.errors import GpomError
 from mapping.build import MapBuilder
 from pipeline import run as run_module
+from pipeline.config import load_config
 from pipeline.errors import PipelineError
 from pipeline.remap import remap_run
 from pipeline.run import run_pipeline
@@ -78,7 +79,7 @@ def small_log(tmp_path_factory) -> Path:
 def small_run(small_log, tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("run")
     out = folder / "run"
-    run_pipeline(small_log, out, config_path=_config(folder, {}))
+    run_pipeline(small_log, out, load_config(_config(folder, {})))
     return out
 
 
@@ -93,7 +94,9 @@ def test_a_map_finer_than_memory_allows_fails_before_slam(small_log, tmp_path, m
     monkeypatch.setattr("pipeline.run.run_slam_recording", _fail)
     single_scan = r"the map of a single scan: .* cells, above scale\.max_map_cells"
     with pytest.raises(PipelineError, match=single_scan):
-        run_pipeline(small_log, tmp_path / "r", config_path=_config(tmp_path, {}), resolution_m=1e-4)
+        run_pipeline(
+            small_log, tmp_path / "r", load_config(_config(tmp_path, {}), {"mapping": {"resolution_m": 1e-4}})
+        )
     assert list(tmp_path.iterdir()) == [tmp_path / "config.yaml"]
 
 
@@ -106,7 +109,7 @@ def test_the_run_bounds_are_checked_before_training(small_log, tmp_path, monkeyp
     cfg = _config(tmp_path, {"scale": {"max_map_cells": 1000}})
     whole_run = rf"{small_log}: the maps of the run: .* cells, above .* = 1e\+03"
     with pytest.raises(PipelineError, match=whole_run):
-        run_pipeline(small_log, tmp_path / "r", config_path=cfg)
+        run_pipeline(small_log, tmp_path / "r", load_config(cfg))
     assert not (tmp_path / "r").exists() and not list(tmp_path.glob("r.partial-*"))
 
 
@@ -157,7 +160,7 @@ def test_disk_full_while_writing_is_one_line_and_leaves_nothing(small_log, tmp_p
     monkeypatch.setattr("pipeline.run.write_maps", no_space)
     out = tmp_path / "run"
     with pytest.raises(PipelineError, match=r"run: writing failed: OSError: No space left on device: .*png"):
-        run_pipeline(small_log, out, config_path=_config(tmp_path, {}))
+        run_pipeline(small_log, out, load_config(_config(tmp_path, {})))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["config.yaml"]
 
 
@@ -196,7 +199,7 @@ def test_a_gtsam_failure_in_slam_is_one_line_naming_the_input(small_log, tmp_pat
 
     monkeypatch.setattr("pipeline.run.run_slam_recording", indeterminate)
     with pytest.raises(PipelineError) as info:
-        run_pipeline(small_log, tmp_path / "r", config_path=_config(tmp_path, {}))
+        run_pipeline(small_log, tmp_path / "r", load_config(_config(tmp_path, {})))
     message = str(info.value)
     assert "\n" not in message
     assert message.startswith(f"{small_log}: SLAM failed: RuntimeError: Indeterminant linear system")
@@ -209,7 +212,7 @@ def test_gp_training_failure_names_the_input(small_log, tmp_path) -> None:
         {"mapping": {"k_occupied": 200, "k_free": 200, "train": {"scans": 1, "anneal_evaluations": 10}}},
     )
     with pytest.raises(GpomError, match=rf"^{small_log}: cannot train the GP: no training neighbourhood"):
-        run_pipeline(small_log, tmp_path / "r", config_path=cfg)
+        run_pipeline(small_log, tmp_path / "r", load_config(cfg))
 
 
 # --- remap on damaged run folders --------------------------------------------------------------------------

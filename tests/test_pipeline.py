@@ -20,6 +20,7 @@ import yaml
 
 from datasets.ros.maps import read_map_bag
 from mapping.exports import read_layers_npz, read_map_server
+from pipeline.config import load_config
 from pipeline.run import run_pipeline
 from tests.conftest import REPO, data_file
 from tests.layer_checks import assert_same_map
@@ -75,7 +76,7 @@ def loop_bag(tmp_path_factory) -> Path:
 def loop_run(loop_bag, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("runs") / "loop"
     cfg = write_config(out.parent / "fast.yaml", FAST_TRAINING)
-    run_pipeline(loop_bag, out, config_path=cfg)  # the default mapper: GPPOL with the SLAM covariances
+    run_pipeline(loop_bag, out, load_config(cfg))  # the default mapper: GPPOL with the SLAM covariances
     return out
 
 

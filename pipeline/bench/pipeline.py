@@ -23,15 +23,15 @@ INTEL = SHARED_DATA_DIR / "intel" / "intel.clf.bz2"
 
 def bench_pipeline(progress: Progress | None = None, path: str | Path = INTEL) -> dict[str, Any]:
     """Run the full pipeline once on ``path`` (default intel.clf) and report its wall time."""
-    mapper = load_config().mapping.mapper
+    config = load_config()
     with tempfile.TemporaryDirectory(prefix="gpom-bench-") as tmp:
         t0 = time.perf_counter()
-        summary = run_pipeline(Path(path), Path(tmp) / "run", mapper=mapper, progress=progress)
+        summary = run_pipeline(Path(path), Path(tmp) / "run", config, progress=progress)
         wall = time.perf_counter() - t0
     return {
         "pipeline_intel_wall_s": wall,
         "pipeline_intel_realtime_factor": summary["data_duration_s"] / wall,
-        "pipeline_intel_mapper": mapper,
+        "pipeline_intel_mapper": config.mapping.mapper,
         "pipeline_intel_stages_s": summary["timings_s"],
         "pipeline_intel_map_cells": summary["map"]["shape_hw"][0] * summary["map"]["shape_hw"][1],
     }
