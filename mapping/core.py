@@ -1,29 +1,28 @@
 """Compiled local-GP prediction (eqs. 2-3) for many query points at once, parallel over queries.
 
-For each query ``x*`` (section 3.7): the ``k_occ`` nearest occupied endpoints (+1) and the ``k_free`` nearest
-free beam segments, each giving its point closest to ``x*`` (-1, eqs. 13-14); then a local GP on these
-``n <= k_occ + k_free`` training points, in coordinates centred on the query, solved by a float64 Cholesky
-of ``K + sigma_n^2 I`` (jitter added and the factorisation retried if it fails), and the PLS link
+For each query ``x*`` (section 3.7): the ``k_occ`` nearest occupied endpoints (+1) and the ``k_free``
+nearest free beam segments, each giving its point closest to ``x*`` (-1, eqs. 13-14); then a local GP on
+these ``n <= k_occ + k_free`` training points, in coordinates centred on the query, solved by a float64
+Cholesky of ``K + sigma_n^2 I`` (jitter added and the factorisation retried if it fails), and the PLS link
 ``p = Phi((alpha mu + beta) / sqrt(1 + alpha^2 (sigma^2 + sigma_n^2)))`` (SPEC section 5, R&W eq. 6.42).
 
-Two paths share the same steps. The fast path, :func:`predict_batch`, solves LANES = 32 queries together
-(lane index innermost, so that LLVM vectorises the kernel blocks, the Cholesky and the two solves:
-``_kernel_lanes``, ``_cholesky_lanes``, ``_forward_lanes``); the scalar path (``_kernel_blocks``,
-``_solve_local``) redoes, alone and with jitter, a query whose factorisation failed.
+:func:`predict_batch` runs chunks of queries in parallel (``_predict_chunk``); within a chunk each query
+goes through the neighbour search (:func:`mapping.index.knn_points`, :func:`mapping.index.knn_segments`,
+warm-started from the previous query's neighbours) and gets its training set, centred on the query
+(``_training_inputs``; GPPOL, section 3.6: ``_gaussian_inputs``, the means and 2x2 covariances of the
+inputs), copied into one of LANES lanes. Then LANES queries are solved together, the lane index innermost
+so that LLVM vectorises the loops: the kernel blocks ``K``, ``k*`` (``_kernel_lanes``; GPPOL: the kernel
+integrated over the input distributions, eq. 19 or eq. 23, ``_noisy_kernel_lanes``; the test point stays
+deterministic), the Cholesky factorisation and the two forward solves (``_solve_lanes``), then mean,
+variance and link (``_write_lanes``). A lane whose factorisation fails is redone alone by the scalar path
+(``_kernel_blocks`` or ``_noisy_kernel_single``, then ``_solve_local``, with jitter retries).
 
-Seams for GPPOL (issue 5): the per-query work is split into
-neighbour search (:func:`mapping.index.knn_points`, :func:`mapping.index.knn_segments`: ids, and the
-position ``t`` of each free point along its beam, from which GPPOL gets the range of the free point),
-``_training_inputs`` (training point means, centred on the query; GPPOL adds their 2x2 covariances, from the
-unscented transform, beside them), ``_kernel_lanes`` / ``_kernel_blocks`` (``K`` between training points,
-``k*`` between training points and the query, ``k**``; GPPOL swaps these for the kernels integrated over the
-training input distributions, eq. 19 / eq. 23; the test point stays deterministic) and
-``_cholesky_lanes`` + ``_forward_lanes`` / ``_solve_local`` (unchanged for GPPOL). A GPPOL driver copies
-:func:`predict_batch` and replaces the two middle steps; the PLS link is the same.
+Arguments are named tuples (:class:`LocalGP`, :class:`InputGaussians`, and the indexes of
+:mod:`mapping.index`), which numba compiles like separate arguments.
 
 Compiled code is cached on disk (``cache=True``). Numba's cache does not notice edits to compiled functions
 of OTHER modules that a cached function calls (e.g. :mod:`mapping.index` from :func:`predict_batch`): after
-editing ``mapping/index.py``, delete ``mapping/__pycache__/*.nb[ic]``.
+editing ``mapping/index.py`` or ``mapping/raster.py``, delete ``mapping/__pycache__/*.nb[ic]``.
 
 Kernel ids and packed parameters (see :meth:`mapping.kernels.Kernel.packed`):
 0 neural network (eq. 7): ``(sf2, 2 sigma_0^2, 2 sigma^2)``; 1 squared exponential: ``(sf2, 1/l^2)``;
@@ -33,11 +32,16 @@ Kernel ids and packed parameters (see :meth:`mapping.kernels.Kernel.packed`):
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
+from numpy.typing import NDArray
 
-from mapping.index import knn_points, knn_segments
+from mapping.index import flat_points, flat_segments, knn_points, knn_segments, points_of, segments_of
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 KERNEL_NN = 0
 KERNEL_SE = 1
@@ -185,10 +189,9 @@ def _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y):
 
 # ---------------------------------------------------------------------------------------------------------
 # The fast path: LANES queries solved together, the lane index innermost, so that the kernel blocks, the
-# Cholesky factorisation and the solves run as SIMD instructions over 4 queries at once. 32 rather than 16:
-# the Cholesky and solve loops accumulate through memory (acc[lane], out[i, lane]) and pay a fixed cost per
-# inner loop, both spread over twice as many queries (Cholesky + solves ~2.6 -> ~1.5 us per query on the
-# test machine, Zen 3; 64 lanes no better, their K blocks no longer fit in L2).
+# Cholesky factorisation and the solves run as SIMD instructions over several queries at once. The Cholesky
+# and solve loops accumulate through memory (acc[lane], out[i, lane]) and pay a fixed cost per inner loop,
+# which more lanes spread over more queries; beyond 32 lanes the K blocks of a chunk no longer fit in L2.
 
 LANES = 32
 
@@ -501,181 +504,331 @@ def _noisy_kernel_lanes(mode, kid, kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN):
         _gh_nodes_lanes(kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN)
 
 
+# ---------------------------------------------------------------------------------------------------------
+# The drivers: many queries, in parallel chunks.
+
+
+class LocalGP(NamedTuple):
+    """The local GP of every query: ``k_occ`` + ``k_free`` neighbours, the kernel (``kernel_id``, and its
+    ``kernel_params`` as :meth:`mapping.kernels.Kernel.packed` gives them), the noise variance, the jitter of
+    a failed factorisation's retries, the PLS link ``alpha``, ``beta``, and ``chunk``, how many queries one
+    parallel task takes (its scratch is allocated once)."""
+
+    k_occ: int
+    k_free: int
+    kernel_id: int
+    kernel_params: FloatArray
+    noise_var: float
+    jitter: float
+    alpha: float
+    beta: float
+    chunk: int
+
+    @classmethod
+    def of(
+        cls, k_occ: int, k_free: int, kernel_id: int, kernel_params: FloatArray, noise_var: float,
+        jitter: float, alpha: float, beta: float, chunk: int = 256,
+    ) -> LocalGP:  # fmt: skip
+        """The tuple with normalised types (one compiled specialisation for all maps)."""
+        kp = np.ascontiguousarray(kernel_params, dtype=np.float64)
+        return cls(
+            int(k_occ), int(k_free), int(kernel_id), kp, float(noise_var), float(jitter), float(alpha),
+            float(beta), int(chunk),
+        )  # fmt: skip
+
+
+class InputGaussians(NamedTuple):
+    """The training inputs' distributions: ``mode`` INPUTS_POINTS (GPFOL: points, the arrays unused) or a
+    GPPOL mode; ``occ_moments`` (H, 5) and ``seg_moments`` (M, 14), see :func:`_gaussian_inputs`; the
+    Gauss-Hermite rule, ``nodes`` (m, 2) standard nodes and ``weights`` (m,) summing to 1."""
+
+    mode: int
+    occ_moments: FloatArray
+    seg_moments: FloatArray
+    nodes: FloatArray
+    weights: FloatArray
+
+    @classmethod
+    def points(cls) -> InputGaussians:
+        """GPFOL: deterministic training inputs."""
+        return cls(INPUTS_POINTS, np.zeros((0, 5)), np.zeros((0, 14)), np.zeros((1, 2)), np.ones(1))
+
+
+class _SearchScratch(NamedTuple):
+    """Neighbour-search buffers of one chunk: squared distances, ids and segment parameters of the
+    endpoints (``*o``) and free segments (``*f``) found, the warm-start candidates, per-cell buffers."""
+
+    d2o: FloatArray
+    ido: IntArray
+    to: FloatArray
+    d2f: FloatArray
+    idf: IntArray
+    tf: FloatArray
+    warm_o: IntArray
+    warm_f: IntArray
+    pbuf: FloatArray
+    sbuf: NDArray[np.float32]
+
+
+class _LaneScratch(NamedTuple):
+    """LANES local problems of one chunk (see the fast path above): inputs XL, covariances SL, labels yL,
+    ``mask`` (1 real point, 0 pad), sizes ``counts``; K blocks KL, ksL and the solver's work arrays; GPPOL
+    quadrature nodes PH, SN."""
+
+    XL: FloatArray
+    SL: FloatArray
+    yL: FloatArray
+    mask: FloatArray
+    counts: IntArray
+    KL: FloatArray
+    ksL: FloatArray
+    sL: FloatArray
+    invd: FloatArray
+    vL: FloatArray
+    wL: FloatArray
+    acc: FloatArray
+    ok: NDArray[np.bool_]
+    PH: FloatArray
+    SN: FloatArray
+
+
+class _SingleScratch(NamedTuple):
+    """One local problem: inputs X, covariances S, labels y (filled per query, then copied to its lane), and
+    the scalar path's K, ks and work arrays."""
+
+    X: FloatArray
+    S: FloatArray
+    y: FloatArray
+    K: FloatArray
+    ks: FloatArray
+    s: FloatArray
+    diag: FloatArray
+    v: FloatArray
+    w: FloatArray
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _search_scratch(points, segments, k_occ, k_free):
+    """Neighbour-search buffers for ``k_occ`` + ``k_free`` neighbours among ``points`` and ``segments``."""
+    return _SearchScratch(
+        np.empty(max(k_occ, 1)),
+        np.empty(max(k_occ, 1), np.int64),
+        np.empty(max(k_occ, 1)),
+        np.empty(max(k_free, 1)),
+        np.empty(max(k_free, 1), np.int64),
+        np.empty(max(k_free, 1)),
+        np.empty(max(k_occ, 1), np.int64),
+        np.empty(max(k_free, 1), np.int64),
+        np.empty(max(points.index.most, 1)),
+        np.empty(max(segments.index.most, 1), np.float32),
+    )
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _keep_warm(ids, n, warm):
+    """The next query is usually close by: its search starts from these neighbours."""
+    for i in range(n):
+        warm[i] = ids[i]
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _pad_lanes(lanes, nfill):
+    """Pads of the lanes with fewer than ``nfill`` points: zero inputs and labels (identity rows in K)."""
+    XL = lanes.XL
+    SL = lanes.SL
+    yL = lanes.yL
+    mask = lanes.mask
+    counts = lanes.counts
+    for lane in range(LANES):
+        for i in range(counts[lane], nfill):
+            XL[i, 0, lane] = 0.0
+            XL[i, 1, lane] = 0.0
+            SL[i, 0, lane] = 0.0
+            SL[i, 1, lane] = 0.0
+            SL[i, 2, lane] = 0.0
+            yL[i, lane] = 0.0
+            mask[i, lane] = 0.0
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _solve_lanes(gp, inputs, lanes, nfill):
+    """K + sigma_n^2 I (1 on the pads' diagonal), its Cholesky factor and the two forward solves
+    ``L v = k*``, ``L w = y`` of every lane; ``lanes.ok[lane]`` is False where the factorisation failed."""
+    kid = gp.kernel_id
+    kp = gp.kernel_params
+    if inputs.mode == INPUTS_POINTS:
+        _kernel_lanes(kid, kp, lanes.XL, lanes.mask, nfill, lanes.KL, lanes.ksL, lanes.sL)
+    else:
+        _noisy_kernel_lanes(
+            inputs.mode, kid, kp, lanes.XL, lanes.SL, lanes.mask, nfill, lanes.KL, lanes.ksL, inputs.nodes,
+            inputs.weights, lanes.PH, lanes.SN,
+        )  # fmt: skip
+    KL = lanes.KL
+    mask = lanes.mask
+    ok = lanes.ok
+    noise_var = gp.noise_var
+    for i in range(nfill):
+        for lane in range(LANES):
+            KL[i, i, lane] += noise_var * mask[i, lane] + (1.0 - mask[i, lane])
+    for lane in range(LANES):
+        ok[lane] = True
+    _cholesky_lanes(KL, nfill, lanes.invd, lanes.acc, ok)
+    _forward_lanes(KL, nfill, lanes.invd, lanes.ksL, lanes.vL, lanes.yL, lanes.wL)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _link(gp, mu, var):
+    """p(occ) by the PLS link."""
+    return _phi((gp.alpha * mu + gp.beta) / math.sqrt(1.0 + gp.alpha * gp.alpha * (var + gp.noise_var)))
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _write_lanes(base, nl, nfill, gp, inputs, kss, lanes, one, out_mean, out_var, out_prob):
+    """Mean, variance and p(occ) of the ``nl`` queries from ``base`` on; a lane whose factorisation failed
+    is redone alone, with jitter retries (``_solve_local``)."""
+    ok = lanes.ok
+    vL = lanes.vL
+    wL = lanes.wL
+    for lane in range(nl):
+        q = base + lane
+        if ok[lane]:
+            mu = 0.0
+            qq = 0.0
+            for i in range(nfill):
+                mu += vL[i, lane] * wL[i, lane]
+                qq += vL[i, lane] * vL[i, lane]
+            var = min(max(kss - qq, 0.0), kss)
+        else:  # rare
+            mu, var = _solve_alone(lane, gp, inputs, lanes, one)
+        out_mean[q] = mu
+        out_var[q] = var
+        out_prob[q] = _link(gp, mu, var)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _solve_alone(lane, gp, inputs, lanes, one):
+    """(mean, variance) of the local problem of lane ``lane`` by the scalar path."""
+    n = lanes.counts[lane]
+    X = one.X
+    y = one.y
+    XL = lanes.XL
+    yL = lanes.yL
+    for i in range(n):
+        X[i, 0] = XL[i, 0, lane]
+        X[i, 1] = XL[i, 1, lane]
+        y[i] = yL[i, lane]
+    kid = gp.kernel_id
+    kp = gp.kernel_params
+    if inputs.mode == INPUTS_POINTS:
+        kss1 = _kernel_blocks(kid, kp, X, n, one.K, one.ks, one.s)
+    else:
+        kss1 = _noisy_kernel_single(
+            inputs.mode, kid, kp, XL, lanes.SL, lane, n, one.K, one.ks, inputs.nodes, inputs.weights
+        )
+    return _solve_local(one.K, one.ks, kss1, y, n, gp.noise_var, gp.jitter, one.diag, one.v, one.w)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean, out_var, out_prob):
+    """Predictions at ``queries[lo:hi]``, LANES queries at a time. The per-query steps stay in this loop,
+    on the scratch arrays as locals: handing the scratch tuples to a helper for every query is slower; the
+    per-block steps are helpers."""
+    k_occ = gp.k_occ
+    k_free = gp.k_free
+    nmax = k_occ + k_free
+    nodes = inputs.weights.shape[0] if inputs.mode == INPUTS_GH_NODES else 1
+    sc = _search_scratch(points, segments, k_occ, k_free)
+    one = _SingleScratch(
+        np.empty((nmax, 2)), np.zeros((nmax, 3)), np.empty(nmax), np.empty((nmax, nmax)), np.empty(nmax),
+        np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax),
+    )  # fmt: skip
+    lanes = _LaneScratch(
+        np.zeros((nmax, 2, LANES)), np.zeros((nmax, 3, LANES)), np.zeros((nmax, LANES)),
+        np.zeros((nmax, LANES)), np.zeros(LANES, np.int64), np.empty((nmax, nmax, LANES)),
+        np.empty((nmax, LANES)), np.empty((nmax, LANES)), np.empty((nmax, LANES)), np.empty((nmax, LANES)),
+        np.empty((nmax, LANES)), np.empty((2, LANES)), np.empty(LANES, np.bool_),
+        np.empty((nmax, nodes, 2, LANES)), np.empty((nmax, nodes, LANES)),
+    )  # fmt: skip
+    d2o, ido, to, d2f, idf, tf, warm_o, warm_f, pbuf, sbuf = sc
+    X, S, y = one.X, one.S, one.y
+    XL, SL, yL, mask, counts = lanes.XL, lanes.SL, lanes.yL, lanes.mask, lanes.counts
+    pts, seg = points.xy, segments.seg
+    mode, occ_mom, seg_mom = inputs.mode, inputs.occ_moments, inputs.seg_moments
+    no = 0
+    nf = 0
+    for base in range(lo, hi, LANES):
+        nl = min(LANES, hi - base)
+        nfill = 0
+        for lane in range(LANES):
+            counts[lane] = 0
+            if lane >= nl:
+                continue
+            qx = queries[base + lane, 0]
+            qy = queries[base + lane, 1]
+            no = knn_points(qx, qy, points, k_occ, d2o, ido, to, warm_o, no, pbuf)
+            nf = knn_segments(qx, qy, segments, k_free, d2f, idf, tf, warm_f, nf, sbuf)
+            _keep_warm(ido, no, warm_o)
+            _keep_warm(idf, nf, warm_f)
+            # the training set, centred on the query, into this lane
+            if mode == INPUTS_POINTS:
+                n = _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y)
+            else:
+                n = _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, y)
+                for i in range(n):
+                    SL[i, 0, lane] = S[i, 0]
+                    SL[i, 1, lane] = S[i, 1]
+                    SL[i, 2, lane] = S[i, 2]
+            counts[lane] = n
+            nfill = max(nfill, n)
+            for i in range(n):
+                XL[i, 0, lane] = X[i, 0]
+                XL[i, 1, lane] = X[i, 1]
+                yL[i, lane] = y[i]
+                mask[i, lane] = 1.0
+        if nfill == 0:  # no data at all: the prior
+            for lane in range(nl):
+                out_mean[base + lane] = 0.0
+                out_var[base + lane] = kss
+                out_prob[base + lane] = _link(gp, 0.0, kss)
+            continue
+        _pad_lanes(lanes, nfill)
+        _solve_lanes(gp, inputs, lanes, nfill)
+        _write_lanes(base, nl, nfill, gp, inputs, kss, lanes, one, out_mean, out_var, out_prob)
+
+
 @nb.njit(cache=True, error_model="numpy", parallel=True)
-def predict_batch(
-    queries,
-    pts,
-    p_geom,
-    p_start,
-    seg,
-    ecopy,
-    s_geom,
-    s_start,
-    s_items,
-    k_occ,
-    k_free,
-    kid,
-    kp,
-    noise_var,
-    jitter,
-    alpha,
-    beta,
-    chunk,
-    mode,
-    occ_mom,
-    seg_mom,
-    gz,
-    gw,
-    out_mean,
-    out_var,
-    out_prob,
-):
-    """GPFOL / GPPOL prediction at (Q, 2) ``queries``: writes mean (eq. 2), latent variance (eq. 3), p(occ).
+def predict_batch(queries, points, segments, gp, inputs, out_mean, out_var, out_prob):
+    """GPFOL / GPPOL prediction at (Q, 2) ``queries``: writes the mean (eq. 2), latent variance (eq. 3) and
+    p(occ) of each into ``out_mean``, ``out_var``, ``out_prob`` (Q,).
 
-    ``mode`` INPUTS_POINTS is GPFOL; the GPPOL modes (INPUTS_GIRARD, INPUTS_GH_DIFFERENCE, INPUTS_GH_NODES)
-    read the input Gaussians from ``occ_mom`` (H, 5) and ``seg_mom`` (M, 14) (see :func:`_gaussian_inputs`;
-    empty arrays for GPFOL) and integrate the kernel over them with the Gauss-Hermite rule ``gz`` (m, 2)
-    standard nodes, ``gw`` (m,) weights summing to 1.
-
-    ``pts`` (H, 2): occupied endpoints in cell order; ``seg`` (M, 5): free segments (start, direction,
-    1/|d|^2) and ``ecopy`` their float32 copies per index entry; ``*_geom`` = (origin x, origin y, cell, nx,
-    ny, most items in a cell), ``*_start`` and ``s_items`` of their grid indexes (see :mod:`mapping.index`).
-    Chunks of ``chunk`` queries run in parallel (scratch allocated once per chunk); inside a chunk, LANES
-    queries are solved together. A lane whose Cholesky fails is redone alone with jitter (``_solve_local``).
+    ``points`` (:class:`mapping.index.PointSet`): the occupied endpoints; ``segments``
+    (:class:`mapping.index.SegmentSet`): the free segments; ``gp``: a :class:`LocalGP`; ``inputs``: an
+    :class:`InputGaussians` (GPFOL: :meth:`InputGaussians.points`; GPPOL: the input Gaussians, the kernel
+    integrated over them by the rule it holds). Chunks of ``gp.chunk`` queries run in parallel; inside a
+    chunk LANES queries are solved together, and a lane whose Cholesky fails is redone alone with jitter.
     """
     nq = queries.shape[0]
+    chunk = gp.chunk
     nchunks = (nq + chunk - 1) // chunk
-    nmax = k_occ + k_free
-    kss = _prior_var(kid, kp)
+    kss = _prior_var(gp.kernel_id, gp.kernel_params)
+    flat_p = flat_points(points)  # a parallel loop takes flat tuples only (mapping.index)
+    flat_s = flat_segments(segments)
     for c in nb.prange(nchunks):
-        d2o = np.empty(max(k_occ, 1))
-        ido = np.empty(max(k_occ, 1), np.int64)
-        to = np.empty(max(k_occ, 1))
-        d2f = np.empty(max(k_free, 1))
-        idf = np.empty(max(k_free, 1), np.int64)
-        tf = np.empty(max(k_free, 1))
-        X = np.empty((nmax, 2))
-        S = np.zeros((nmax, 3))
-        y = np.empty(nmax)
-        XL = np.zeros((nmax, 2, LANES))
-        SL = np.zeros((nmax, 3, LANES))
-        nodes = gw.shape[0] if mode == INPUTS_GH_NODES else 1
-        PH = np.empty((nmax, nodes, 2, LANES))
-        SN = np.empty((nmax, nodes, LANES))
-        yL = np.zeros((nmax, LANES))
-        mask = np.zeros((nmax, LANES))
-        KL = np.empty((nmax, nmax, LANES))
-        ksL = np.empty((nmax, LANES))
-        sL = np.empty((nmax, LANES))
-        invd = np.empty((nmax, LANES))
-        vL = np.empty((nmax, LANES))
-        wL = np.empty((nmax, LANES))
-        acc = np.empty((2, LANES))
-        ok = np.empty(LANES, np.bool_)
-        counts = np.zeros(LANES, np.int64)
-        warm_o = np.empty(max(k_occ, 1), np.int64)
-        warm_f = np.empty(max(k_free, 1), np.int64)
-        sbuf = np.empty(max(int(s_geom[5]), 1), np.float32)
-        pbuf = np.empty(max(int(p_geom[5]), 1))
-        n_warm_o = 0
-        n_warm_f = 0
-        K = np.empty((nmax, nmax))
-        ks = np.empty(nmax)
-        s = np.empty(nmax)
-        diag = np.empty(nmax)
-        v = np.empty(nmax)
-        w = np.empty(nmax)
         lo = c * chunk
         hi = min(lo + chunk, nq)
-        for base in range(lo, hi, LANES):
-            nl = min(LANES, hi - base)
-            nfill = 0
-            for lane in range(LANES):
-                counts[lane] = 0
-                if lane >= nl:
-                    continue
-                q = base + lane
-                qx = queries[q, 0]
-                qy = queries[q, 1]
-                no = knn_points(
-                    qx, qy, pts, p_geom[0], p_geom[1], p_geom[2], int(p_geom[3]), int(p_geom[4]),
-                    p_start, k_occ, d2o, ido, to, warm_o, n_warm_o, pbuf,
-                )  # fmt: skip
-                nf = knn_segments(
-                    qx, qy, seg, ecopy, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]), int(s_geom[4]),
-                    s_start, s_items, k_free, d2f, idf, tf, warm_f, n_warm_f, sbuf,
-                )  # fmt: skip
-                # the next query is usually close by: its search starts from these neighbours
-                for i in range(no):
-                    warm_o[i] = ido[i]
-                for i in range(nf):
-                    warm_f[i] = idf[i]
-                n_warm_o = no
-                n_warm_f = nf
-                if mode == INPUTS_POINTS:
-                    n = _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y)
-                else:
-                    n = _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, y)
-                    for i in range(n):
-                        SL[i, 0, lane] = S[i, 0]
-                        SL[i, 1, lane] = S[i, 1]
-                        SL[i, 2, lane] = S[i, 2]
-                counts[lane] = n
-                nfill = max(nfill, n)
-                for i in range(n):
-                    XL[i, 0, lane] = X[i, 0]
-                    XL[i, 1, lane] = X[i, 1]
-                    yL[i, lane] = y[i]
-                    mask[i, lane] = 1.0
-            if nfill == 0:
-                for lane in range(nl):
-                    out_mean[base + lane] = 0.0
-                    out_var[base + lane] = kss
-                    out_prob[base + lane] = _phi(beta / math.sqrt(1.0 + alpha * alpha * (kss + noise_var)))
-                continue
-            for lane in range(LANES):  # pads: zero inputs and labels, identity rows in K
-                for i in range(counts[lane], nfill):
-                    XL[i, 0, lane] = 0.0
-                    XL[i, 1, lane] = 0.0
-                    SL[i, 0, lane] = 0.0
-                    SL[i, 1, lane] = 0.0
-                    SL[i, 2, lane] = 0.0
-                    yL[i, lane] = 0.0
-                    mask[i, lane] = 0.0
-            if mode == INPUTS_POINTS:
-                _kernel_lanes(kid, kp, XL, mask, nfill, KL, ksL, sL)
-            else:
-                _noisy_kernel_lanes(mode, kid, kp, XL, SL, mask, nfill, KL, ksL, gz, gw, PH, SN)
-            for i in range(nfill):
-                for lane in range(LANES):
-                    KL[i, i, lane] += noise_var * mask[i, lane] + (1.0 - mask[i, lane])
-            for lane in range(LANES):
-                ok[lane] = True
-            _cholesky_lanes(KL, nfill, invd, acc, ok)
-            _forward_lanes(KL, nfill, invd, ksL, vL, yL, wL)
-            for lane in range(nl):
-                q = base + lane
-                if ok[lane]:
-                    mu = 0.0
-                    qq = 0.0
-                    for i in range(nfill):
-                        mu += vL[i, lane] * wL[i, lane]
-                        qq += vL[i, lane] * vL[i, lane]
-                    var = min(max(kss - qq, 0.0), kss)
-                else:  # rare: redo this query alone, with jitter retries
-                    n = counts[lane]
-                    for i in range(n):
-                        X[i, 0] = XL[i, 0, lane]
-                        X[i, 1] = XL[i, 1, lane]
-                        y[i] = yL[i, lane]
-                    if mode == INPUTS_POINTS:
-                        kss1 = _kernel_blocks(kid, kp, X, n, K, ks, s)
-                    else:
-                        kss1 = _noisy_kernel_single(mode, kid, kp, XL, SL, lane, n, K, ks, gz, gw)
-                    mu, var = _solve_local(K, ks, kss1, y, n, noise_var, jitter, diag, v, w)
-                out_mean[q] = mu
-                out_var[q] = var
-                out_prob[q] = _phi((alpha * mu + beta) / math.sqrt(1.0 + alpha * alpha * (var + noise_var)))
+        _predict_chunk(
+            queries,
+            lo,
+            hi,
+            points_of(flat_p),
+            segments_of(flat_s),
+            gp,
+            inputs,
+            kss,
+            out_mean,
+            out_var,
+            out_prob,
+        )
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -712,48 +865,41 @@ def _prior_var(kid, kp):
     return kp[0]
 
 
+@nb.njit(cache=True, error_model="numpy")
+def _gather_chunk(queries, lo, hi, points, segments, k_occ, k_free, out_occ, out_free, out_t):
+    """Neighbours of ``queries[lo:hi]`` (see :func:`gather_batch`)."""
+    d2o, ido, to, d2f, idf, tf, warm_o, warm_f, pbuf, sbuf = _search_scratch(points, segments, k_occ, k_free)
+    no = 0
+    nf = 0
+    for q in range(lo, hi):
+        qx = queries[q, 0]
+        qy = queries[q, 1]
+        no = knn_points(qx, qy, points, k_occ, d2o, ido, to, warm_o, no, pbuf)
+        nf = knn_segments(qx, qy, segments, k_free, d2f, idf, tf, warm_f, nf, sbuf)
+        _keep_warm(ido, no, warm_o)
+        _keep_warm(idf, nf, warm_f)
+        for i in range(k_occ):
+            out_occ[q, i] = ido[i] if i < no else -1
+        for i in range(k_free):
+            out_free[q, i] = idf[i] if i < nf else -1
+            out_t[q, i] = tf[i] if i < nf else 0.0
+
+
 @nb.njit(cache=True, error_model="numpy", parallel=True)
-def gather_batch(
-    queries, pts, p_geom, p_start, seg, ecopy, s_geom, s_start, s_items, k_occ, k_free, out_occ, out_free,
-    out_t,
-):  # fmt: skip
-    """Neighbour ids of (Q, 2) queries: ``out_occ`` (Q, k_occ) endpoint ids, ``out_free`` (Q, k_free) segment
-    ids and ``out_t`` (Q, k_free) positions of the free points along them; -1 pads missing neighbours.
-    Same search as :func:`predict_batch` (chunks of 256 in parallel, each search warm-started from the
-    previous query's neighbours), so that timing it isolates the neighbour search."""
+def gather_batch(queries, points, segments, k_occ, k_free, out_occ, out_free, out_t):
+    """Neighbour ids of (Q, 2) queries among ``points`` and ``segments`` (as in :func:`predict_batch`):
+    ``out_occ`` (Q, k_occ) endpoint ids, ``out_free`` (Q, k_free) segment ids and ``out_t`` (Q, k_free)
+    positions of the free points along them; -1 pads missing neighbours. The same search as
+    :func:`predict_batch` (chunks of 256 in parallel, each search warm-started from the previous query's
+    neighbours), so that timing it isolates the neighbour search."""
     nq = queries.shape[0]
     chunk = 256
     nchunks = (nq + chunk - 1) // chunk
+    flat_p = flat_points(points)
+    flat_s = flat_segments(segments)
     for c in nb.prange(nchunks):
-        d2o = np.empty(max(k_occ, 1))
-        to = np.empty(max(k_occ, 1))
-        ido = np.empty(max(k_occ, 1), np.int64)
-        d2f = np.empty(max(k_free, 1))
-        idf = np.empty(max(k_free, 1), np.int64)
-        tf = np.empty(max(k_free, 1))
-        warm_o = np.empty(max(k_occ, 1), np.int64)
-        warm_f = np.empty(max(k_free, 1), np.int64)
-        sbuf = np.empty(max(int(s_geom[5]), 1), np.float32)
-        pbuf = np.empty(max(int(p_geom[5]), 1))
-        no = 0
-        nf = 0
-        for q in range(c * chunk, min((c + 1) * chunk, nq)):
-            for i in range(no):
-                warm_o[i] = ido[i]
-            for i in range(nf):
-                warm_f[i] = idf[i]
-            qx = queries[q, 0]
-            qy = queries[q, 1]
-            no = knn_points(
-                qx, qy, pts, p_geom[0], p_geom[1], p_geom[2], int(p_geom[3]), int(p_geom[4]),
-                p_start, k_occ, d2o, ido, to, warm_o, no, pbuf,
-            )  # fmt: skip
-            nf = knn_segments(
-                qx, qy, seg, ecopy, s_geom[0], s_geom[1], s_geom[2], int(s_geom[3]), int(s_geom[4]),
-                s_start, s_items, k_free, d2f, idf, tf, warm_f, nf, sbuf,
-            )  # fmt: skip
-            for i in range(k_occ):
-                out_occ[q, i] = ido[i] if i < no else -1
-            for i in range(k_free):
-                out_free[q, i] = idf[i] if i < nf else -1
-                out_t[q, i] = tf[i] if i < nf else 0.0
+        lo = c * chunk
+        hi = min(lo + chunk, nq)
+        _gather_chunk(
+            queries, lo, hi, points_of(flat_p), segments_of(flat_s), k_occ, k_free, out_occ, out_free, out_t
+        )

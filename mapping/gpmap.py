@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapping.beams import Beams
-from mapping.core import INPUTS_POINTS, predict_batch
+from mapping.core import InputGaussians, LocalGP, predict_batch
 from mapping.exports import MapLayers
 from mapping.gppol import GaussianInputs
 from mapping.neighbours import BeamIndex
@@ -115,13 +115,15 @@ class GPOccupancyMap:
         self.index = BeamIndex.build(beams, index_cell_m, index_cell_m)
         self.inputs = inputs
         if inputs is None:
-            self._mode = INPUTS_POINTS
-            self._gaussians = (np.zeros((0, 5)), np.zeros((0, 14)), np.zeros((1, 2)), np.ones(1))
+            self._inputs = InputGaussians.points()
         else:
             if len(inputs.moments) != len(beams):
                 raise ValueError(f"{len(inputs.moments)} input moments for {len(beams)} beams")
-            self._mode = inputs.core_mode(params.kernel)
-            self._gaussians = (*inputs.core_arrays(beams, self.index.hit_beam), *inputs.rule())
+            self._inputs = InputGaussians(
+                inputs.core_mode(params.kernel),
+                *inputs.core_arrays(beams, self.index.hit_beam),
+                *inputs.rule(),
+            )
         self.index_seconds = time.perf_counter() - t0
         self.last_render_seconds = 0.0
 
@@ -151,24 +153,11 @@ class GPOccupancyMap:
         n = pts.shape[0]
         mean, var, prob = np.empty(n), np.empty(n), np.empty(n)
         kid, kp = self.params.kernel.packed()
-        predict_batch(
-            pts,
-            *self.index.core_args(),
-            self.k_occ,
-            self.k_free,
-            kid,
-            kp,
-            self.params.noise_var,
-            self.jitter,
-            self.params.alpha,
-            self.params.beta,
-            self.chunk,
-            self._mode,
-            *self._gaussians,
-            mean,
-            var,
-            prob,
+        p = self.params
+        gp = LocalGP.of(
+            self.k_occ, self.k_free, kid, kp, p.noise_var, self.jitter, p.alpha, p.beta, self.chunk
         )
+        predict_batch(pts, self.index.points, self.index.segments, gp, self._inputs, mean, var, prob)
         if order is not None:
             inv = np.empty_like(order)
             inv[order] = np.arange(n)

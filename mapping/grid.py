@@ -1,8 +1,9 @@
 """The baseline: a log-odds occupancy grid with the inverse sensor model of Thrun et al. (2005, ch. 9).
 
-Narrow beams (``beam_width_deg = 0``, the default): every beam is ray-traced through the grid (Amanatides &
-Woo, compiled): the cells it crosses before its endpoint get ``logit(p_free)``, the endpoint's cell gets
-``logit(p_occ)``; a no-return beam only frees cells along its configured free length.
+Narrow beams (``beam_width_deg = 0``, the default): every beam is ray-traced through the grid (the cell
+walk of :mod:`mapping.raster`, compiled): the cells it crosses before its endpoint get ``logit(p_free)``,
+the endpoint's cell gets ``logit(p_occ)``; a no-return beam only frees cells along its configured free
+length.
 
 Widened beams (``beam_width_deg > 0``): the paper's grid baseline on its sparse street data (section 4.1.1:
 "add surplus noise to the sensor's bearing readings so as to artificially increase the width of the beam").
@@ -30,6 +31,7 @@ from numpy.typing import NDArray
 
 from mapping.beams import Beams
 from mapping.config import GridBaselineConfig
+from mapping.raster import GridGeometry, in_grid, segment_walk, walk_next
 
 FloatArray = NDArray[np.float64]
 Bounds = tuple[float, float, float, float]
@@ -40,49 +42,19 @@ def logit(p: float) -> float:
 
 
 @nb.njit(cache=True)
-def _trace(ox, oy, ex, ey, hit, x0, y0, res, nx, ny, l_free, l_occ, l_max, L):
-    """Update log-odds L (ny, nx) along the ray from (ox, oy) to (ex, ey); returns the cells updated."""
-    gx0 = (ox - x0) / res
-    gy0 = (oy - y0) / res
-    gx1 = (ex - x0) / res
-    gy1 = (ey - y0) / res
-    ix = math.floor(gx0)
-    iy = math.floor(gy0)
-    jx = math.floor(gx1)
-    jy = math.floor(gy1)
-    dx = gx1 - gx0
-    dy = gy1 - gy0
-    sx = 1 if dx > 0 else -1
-    sy = 1 if dy > 0 else -1
-    inf = 1e300
-    tdx = abs(1.0 / dx) if dx != 0.0 else inf
-    tdy = abs(1.0 / dy) if dy != 0.0 else inf
-    if dx > 0:
-        tmx = (ix + 1 - gx0) * tdx
-    elif dx < 0:
-        tmx = (gx0 - ix) * tdx
-    else:
-        tmx = inf
-    if dy > 0:
-        tmy = (iy + 1 - gy0) * tdy
-    elif dy < 0:
-        tmy = (gy0 - iy) * tdy
-    else:
-        tmy = inf
+def _trace(ox, oy, ex, ey, hit, grid, l_free, l_occ, l_max, L):
+    """Update log-odds L (ny, nx) of ``grid`` along the ray from (ox, oy) to (ex, ey): the cells it crosses
+    before the endpoint's cell get ``l_free``, that cell ``l_occ`` if ``hit`` (else ``l_free``); cells
+    outside the grid are skipped. Returns the cells updated."""
+    w, jx, jy, steps = segment_walk(grid, ox, oy, ex, ey, False)
     updated = 0
-    steps = abs(jx - ix) + abs(jy - iy)
     for _ in range(steps):
-        if 0 <= ix < nx and 0 <= iy < ny:
-            v = L[iy, ix] + l_free
-            L[iy, ix] = max(v, -l_max)
+        if in_grid(grid, w.ix, w.iy):
+            v = L[w.iy, w.ix] + l_free
+            L[w.iy, w.ix] = max(v, -l_max)
             updated += 1
-        if tmx < tmy:
-            tmx += tdx
-            ix += sx
-        else:
-            tmy += tdy
-            iy += sy
-    if 0 <= jx < nx and 0 <= jy < ny:
+        w = walk_next(w)
+    if in_grid(grid, jx, jy):
         if hit:
             v = L[jy, jx] + l_occ
             L[jy, jx] = min(v, l_max)
@@ -95,20 +67,26 @@ def _trace(ox, oy, ex, ey, hit, x0, y0, res, nx, ny, l_free, l_occ, l_max, L):
 
 @nb.njit(cache=True)
 def _integrate(origins, ends, is_hit, x0, y0, res, nx, ny, l_free, l_occ, l_max, L):
+    """Trace every ray (in order) through the grid of ``nx`` x ``ny`` cells of ``res`` from (x0, y0)."""
+    grid = GridGeometry(x0, y0, res, nx, ny)
     total = 0
     for i in range(origins.shape[0]):
         total += _trace(
-            origins[i, 0], origins[i, 1], ends[i, 0], ends[i, 1], is_hit[i],
-            x0, y0, res, nx, ny, l_free, l_occ, l_max, L,
-        )  # fmt: skip
+            origins[i, 0], origins[i, 1], ends[i, 0], ends[i, 1], is_hit[i], grid, l_free, l_occ, l_max, L
+        )
     return total
 
 
 @nb.njit(cache=True)
-def _cone(ox, oy, ex, ey, hit, half_width, x0, y0, res, nx, ny, l_free, l_occ, l_max, L):
+def _cone(ox, oy, ex, ey, hit, half_width, grid, l_free, l_occ, l_max, L):
     """Update log-odds L (ny, nx) in the cone of full width ``2 half_width`` (rad) around the beam from
     (ox, oy) to (ex, ey) (Thrun et al. 2005, Table 9.2, obstacle thickness alpha = one cell); returns the
     number of cells updated. Each cell is updated at most once."""
+    x0 = grid.x0
+    y0 = grid.y0
+    res = grid.cell
+    nx = grid.nx
+    ny = grid.ny
     z = math.hypot(ex - ox, ey - oy)
     if z <= 0.0:
         return 0
@@ -167,12 +145,12 @@ def _cone(ox, oy, ex, ey, hit, half_width, x0, y0, res, nx, ny, l_free, l_occ, l
 
 
 @nb.njit(cache=True)
-def _integrate_cones(origins, ends, is_hit, half_width, x0, y0, res, nx, ny, l_free, l_occ, l_max, L):
+def _integrate_cones(origins, ends, is_hit, half_width, grid, l_free, l_occ, l_max, L):
     total = 0
     for i in range(origins.shape[0]):
         total += _cone(
             origins[i, 0], origins[i, 1], ends[i, 0], ends[i, 1], is_hit[i], half_width,
-            x0, y0, res, nx, ny, l_free, l_occ, l_max, L,
+            grid, l_free, l_occ, l_max, L,
         )  # fmt: skip
     return total
 
@@ -212,12 +190,12 @@ class OccupancyGrid:
             np.ascontiguousarray(beams.ends_xy_m, dtype=np.float64),
             np.ascontiguousarray(beams.is_hit),
         )
-        grid = (float(x0), float(y0), float(resolution_m), nx, ny)
+        grid = GridGeometry.of(x0, y0, resolution_m, nx, ny)
         model = (logit(p_free), logit(p_occ), logit(p_clamp))
         t0 = time.perf_counter()
         if beam_width_deg > 0.0:
             half_width = 0.5 * math.radians(beam_width_deg)
-            updates = _integrate_cones(*rays, half_width, *grid, *model, L)
+            updates = _integrate_cones(*rays, half_width, grid, *model, L)
         else:
             updates = _integrate(*rays, *grid, *model, L)
         seconds = time.perf_counter() - t0

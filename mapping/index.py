@@ -4,18 +4,56 @@ The paper stores training data in a kd-tree (section 3.7); a uniform grid does t
 laser maps: each cell lists the items it holds (endpoints) or the segments crossing it (beams), in CSR form
 (``cell_start`` (C+1,), ``items`` (E,)). A k-NN query walks square rings of cells around the query and
 stops when the k-th best distance is below the distance to the next ring, so results are exact.
+
+Compiled code takes an index as named tuples (:class:`CellIndex`, and the data with it: :class:`PointSet`,
+:class:`SegmentSet`); :class:`GridIndex` is the Python-side index that builds them. Numba's parallel loops
+pass only one level of tuples into their bodies, so a parallel caller hands them in flat
+(:func:`flat_points` / :func:`points_of`, :func:`flat_segments` / :func:`segments_of`).
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from mapping.raster import GridGeometry, in_grid, segment_walk, walk_next
+
 FloatArray = NDArray[np.float64]
+
+
+class CellIndex(NamedTuple):
+    """A grid index for compiled code: cell ``c = ix * grid.ny + iy`` lists
+    ``items[cell_start[c]:cell_start[c + 1]]``; ``most`` is the largest number of items in one cell (the
+    size of per-cell scratch buffers)."""
+
+    grid: GridGeometry
+    cell_start: NDArray[np.int64]
+    items: NDArray[np.int32]
+    most: int
+
+
+class PointSet(NamedTuple):
+    """Points for :func:`knn_points`: ``xy`` (P, 2) sorted by cell of ``index`` (whose items are then
+    ``0..P-1``)."""
+
+    xy: FloatArray
+    index: CellIndex
+
+
+class SegmentSet(NamedTuple):
+    """Segments for :func:`knn_segments`: ``seg`` (M, 5), one per row, (start x, start y, d x, d y,
+    1 / |d|^2); ``entries`` (5, E) float32 copies of them per entry of ``index`` (start relative to the
+    entry's cell centre, see :func:`segment_entry_copies`)."""
+
+    seg: FloatArray
+    entries: NDArray[np.float32]
+    index: CellIndex
 
 
 @dataclass(frozen=True)
@@ -36,6 +74,18 @@ class GridIndex:
         counts = np.diff(self.cell_start)
         nonzero = counts[counts > 0]
         return float(nonzero.mean()) if nonzero.size else 0.0
+
+    @property
+    def geometry(self) -> GridGeometry:
+        """The grid's corner, cell and size."""
+        o = self.origin_xy_m
+        return GridGeometry.of(o[0], o[1], self.cell_m, self.shape[0], self.shape[1])
+
+    @cached_property
+    def packed(self) -> CellIndex:
+        """The index for compiled code (computed once)."""
+        most = int(np.diff(self.cell_start).max()) if self.cell_start.size > 1 else 0
+        return CellIndex(self.geometry, self.cell_start, self.items, most)
 
 
 def _grid_geometry(points_xy_m: FloatArray, cell_m: float) -> tuple[FloatArray, tuple[int, int]]:
@@ -65,71 +115,37 @@ def build_point_index(points_xy_m: FloatArray, cell_m: float) -> GridIndex:
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _traverse_count(x0, y0, x1, y1, ox, oy, cell, nx, ny, out_cells, fill):
-    """Cells crossed by segment (x0,y0)-(x1,y1) (Amanatides & Woo); writes them to out_cells when fill."""
-    gx0 = (x0 - ox) / cell
-    gy0 = (y0 - oy) / cell
-    gx1 = (x1 - ox) / cell
-    gy1 = (y1 - oy) / cell
-    ix = min(max(math.floor(gx0), 0), nx - 1)
-    iy = min(max(math.floor(gy0), 0), ny - 1)
-    ex = min(max(math.floor(gx1), 0), nx - 1)
-    ey = min(max(math.floor(gy1), 0), ny - 1)
-    dx = gx1 - gx0
-    dy = gy1 - gy0
-    sx = 1 if dx > 0 else -1
-    sy = 1 if dy > 0 else -1
-    inf = 1e300
-    tdx = abs(1.0 / dx) if dx != 0.0 else inf
-    tdy = abs(1.0 / dy) if dy != 0.0 else inf
-    if dx > 0:
-        tmx = (ix + 1 - gx0) * tdx
-    elif dx < 0:
-        tmx = (gx0 - ix) * tdx
-    else:
-        tmx = inf
-    if dy > 0:
-        tmy = (iy + 1 - gy0) * tdy
-    elif dy < 0:
-        tmy = (gy0 - iy) * tdy
-    else:
-        tmy = inf
+def _traverse(x0, y0, x1, y1, grid, out_cells, fill):
+    """Number of cells of ``grid`` the segment (x0, y0)-(x1, y1) crosses, its ends clamped into the grid
+    (the walk stops where it would leave it); writes their ids to ``out_cells`` when ``fill``."""
+    w, ex, ey, steps = segment_walk(grid, x0, y0, x1, y1, True)
     n = 0
-    limit = abs(ex - ix) + abs(ey - iy) + 1
     while True:
         if fill:
-            out_cells[n] = ix * ny + iy
+            out_cells[n] = w.ix * grid.ny + w.iy
         n += 1
-        if (ix == ex and iy == ey) or n >= limit:
+        if (w.ix == ex and w.iy == ey) or n > steps:
             break
-        if tmx < tmy:
-            tmx += tdx
-            ix += sx
-        else:
-            tmy += tdy
-            iy += sy
-        if ix < 0 or ix >= nx or iy < 0 or iy >= ny:
+        w = walk_next(w)
+        if not in_grid(grid, w.ix, w.iy):
             break
     return n
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _segment_cells(p0, p1, ox, oy, cell, nx, ny):
+def _segment_cells(p0, p1, grid):
+    """Cells crossed by the (M, 2)-(M, 2) segments: (M,) counts and the cell ids, segment after segment."""
     m = p0.shape[0]
     counts = np.empty(m, np.int64)
     dummy = np.empty(1, np.int64)
     for i in range(m):
-        counts[i] = _traverse_count(
-            p0[i, 0], p0[i, 1], p1[i, 0], p1[i, 1], ox, oy, cell, nx, ny, dummy, False
-        )
+        counts[i] = _traverse(p0[i, 0], p0[i, 1], p1[i, 0], p1[i, 1], grid, dummy, False)
     offs = np.zeros(m + 1, np.int64)
     for i in range(m):
         offs[i + 1] = offs[i] + counts[i]
     cells = np.empty(offs[m], np.int64)
     for i in range(m):
-        _traverse_count(
-            p0[i, 0], p0[i, 1], p1[i, 0], p1[i, 1], ox, oy, cell, nx, ny, cells[offs[i] : offs[i + 1]], True
-        )
+        _traverse(p0[i, 0], p0[i, 1], p1[i, 0], p1[i, 1], grid, cells[offs[i] : offs[i + 1]], True)
     return counts, cells
 
 
@@ -156,13 +172,45 @@ def build_segment_index(starts_xy_m: FloatArray, ends_xy_m: FloatArray, cell_m: 
     origin, (nx, ny) = _grid_geometry(np.concatenate([p0, p1]), cell_m)
     if p0.shape[0] == 0:
         return GridIndex(origin, cell_m, (nx, ny), np.zeros(nx * ny + 1, np.int64), np.zeros(0, np.int32))
-    counts, cells = _segment_cells(p0, p1, float(origin[0]), float(origin[1]), float(cell_m), nx, ny)
+    counts, cells = _segment_cells(p0, p1, GridGeometry.of(origin[0], origin[1], cell_m, nx, ny))
     seg = np.repeat(np.arange(p0.shape[0], dtype=np.int32), counts)
     order = np.argsort(cells, kind="stable")
     per_cell = np.bincount(cells, minlength=nx * ny)
     start = np.zeros(nx * ny + 1, np.int64)
     np.cumsum(per_cell, out=start[1:])
     return GridIndex(origin, cell_m, (nx, ny), start, seg[order])
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Flat forms of the index tuples, for parallel loops (module docstring).
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def flat_points(points):
+    """A :class:`PointSet` as a flat tuple of arrays and scalars."""
+    c = points.index
+    g = c.grid
+    return (points.xy, c.cell_start, c.items, c.most, g.x0, g.y0, g.cell, g.nx, g.ny)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def points_of(f):
+    """The :class:`PointSet` of :func:`flat_points`."""
+    return PointSet(f[0], CellIndex(GridGeometry(f[4], f[5], f[6], f[7], f[8]), f[1], f[2], f[3]))
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def flat_segments(segments):
+    """A :class:`SegmentSet` as a flat tuple of arrays and scalars."""
+    c = segments.index
+    g = c.grid
+    return (segments.seg, segments.entries, c.cell_start, c.items, c.most, g.x0, g.y0, g.cell, g.nx, g.ny)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def segments_of(f):
+    """The :class:`SegmentSet` of :func:`flat_segments`."""
+    return SegmentSet(f[0], f[1], CellIndex(GridGeometry(f[5], f[6], f[7], f[8], f[9]), f[2], f[3], f[4]))
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -206,14 +254,126 @@ def _cell_d2(gx, gy, ix, iy):
     return ddx * ddx + ddy * ddy
 
 
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _square(gx, gy, radius, nx, ny):
+    """Cell ranges (inclusive) of the square of half-side ``radius`` (cells) around (gx, gy), in the grid."""
+    return (
+        max(math.floor(gx - radius), 0),
+        min(math.floor(gx + radius), nx - 1),
+        max(math.floor(gy - radius), 0),
+        min(math.floor(gy + radius), ny - 1),
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The ring search of a cold start (no warm candidates, or fewer than k): square rings of cells of growing
+# radius r around the query's cell (cx, cy), ring r being the cells at Chebyshev distance r from it, in the
+# grid only. After each ring the search stops once the k-th distance found lies within the block of rings
+# searched (every unseen item is then farther), or when the rings have left the grid. A caller steps a
+# :class:`Rings` cursor: :func:`rings_start`, then :func:`rings_next` after each cell it visits.
+
+
+class Rings(NamedTuple):
+    """A ring search at cell (ix, iy) of ring ``r`` around (cx, cy); the query is (gx, gy) in cell units,
+    rings beyond ``rmax`` lie outside the grid; ``done`` once the search may stop."""
+
+    gx: float
+    gy: float
+    cx: int
+    cy: int
+    rmax: int
+    r: int
+    ix: int
+    iy: int
+    done: bool
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _ring_step(cx, cy, r, ix, iy):
+    """The cell after (ix, iy) on ring r, column by column (a side column whole, others top and bottom)."""
+    if ix == cx - r or ix == cx + r:
+        iy += 1
+    else:
+        iy += 2 * r
+    if iy > cy + r:
+        ix += 1
+        iy = cy - r
+    return ix, iy
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _ring_seek(grid, gx, gy, cx, cy, rmax, r, ix, iy, full, kth_d2):
+    """From cell (ix, iy) of ring r on, the first cell in the grid; past the end of a ring, the next ring,
+    unless the search may stop (``full``: k items found, the k-th at squared distance ``kth_d2``)."""
+    while True:
+        x_hi = min(cx + r, grid.nx - 1)
+        while ix <= x_hi:
+            if 0 <= iy < grid.ny:
+                return Rings(gx, gy, cx, cy, rmax, r, ix, iy, False)
+            ix, iy = _ring_step(cx, cy, r, ix, iy)
+        if r >= rmax:
+            break
+        if full:
+            # distance from the query to the outside of the (2r+1)^2 block of cells
+            b = min(
+                min(gx - (cx - r), (cx + r + 1) - gx),
+                min(gy - (cy - r), (cy + r + 1) - gy),
+            )
+            b *= grid.cell
+            if b > 0 and b * b >= kth_d2:
+                break
+        r += 1
+        ix = max(cx - r, 0)
+        iy = cy - r
+    return Rings(gx, gy, cx, cy, rmax, r, ix, iy, True)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def rings_start(grid, gx, gy):
+    """The first cell of a ring search around (gx, gy) (cell units) in ``grid``."""
+    cx = math.floor(gx)
+    cy = math.floor(gy)
+    # rings beyond this radius lie entirely outside the grid
+    rmax = max(max(cx, grid.nx - 1 - cx), max(cy, grid.ny - 1 - cy))
+    return _ring_seek(grid, gx, gy, cx, cy, rmax, 0, max(cx, 0), cy, False, 0.0)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def rings_next(grid, rings, full, kth_d2):
+    """The cell after the current one, with the search's state after visiting it (``full``: k items found,
+    the k-th at squared distance ``kth_d2``)."""
+    ix, iy = _ring_step(rings.cx, rings.cy, rings.r, rings.ix, rings.iy)
+    return _ring_seek(grid, rings.gx, rings.gy, rings.cx, rings.cy, rings.rmax, rings.r, ix, iy, full, kth_d2)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Endpoints.
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _point_cell(qx, qy, pts, cell_start, k, best_d2, best_id, best_t, buf, c, count, check_dup):
+    """Offer the points of cell ``c`` to the top-k buffers (distances first, in one vectorised pass)."""
+    start = cell_start[c]
+    end = cell_start[c + 1]
+    if end > start:
+        _cell_point_d2(qx, qy, pts, start, end, buf)
+        for i in range(start, end):
+            d2 = buf[i - start]
+            if count < k or d2 < best_d2[k - 1]:
+                if check_dup and _listed(best_id, count, i):
+                    continue
+                count = _insert(best_d2, best_id, best_t, count, k, d2, i, 0.0)
+    return count
+
+
 @nb.njit(cache=True, error_model="numpy")
-def knn_points(qx, qy, pts, ox, oy, cell, nx, ny, cell_start, k, best_d2, best_id, best_t, warm, n_warm, buf):
-    """The k points nearest (qx, qy) among (P, 2) ``pts`` stored in cell order (cell c holds
-    ``pts[cell_start[c]:cell_start[c + 1]]``); writes sorted squared distances and indices into ``pts``;
-    returns how many were found. ``warm[:n_warm]`` are distinct candidate indices tried first (e.g. the
-    neighbours of the previous, nearby query): they only make the search faster, never change its result.
-    ``buf`` (as long as the fullest cell) receives each cell's distances from a vectorised pass."""
+def knn_points(qx, qy, points, k, best_d2, best_id, best_t, warm, n_warm, buf):
+    """The k points of ``points`` (a :class:`PointSet`) nearest (qx, qy): writes sorted squared distances
+    and indices into ``points.xy``; returns how many were found. ``warm[:n_warm]`` are distinct candidate
+    indices tried first (e.g. the neighbours of the previous, nearby query): they only make the search
+    faster, never change its result. ``buf`` (``points.index.most`` long) receives each cell's distances."""
     count = 0
+    pts = points.xy
     if k == 0 or pts.shape[0] == 0:
         return 0
     for w in range(n_warm):
@@ -221,11 +381,15 @@ def knn_points(qx, qy, pts, ox, oy, cell, nx, ny, cell_start, k, best_d2, best_i
         dx = pts[i, 0] - qx
         dy = pts[i, 1] - qy
         count = _insert(best_d2, best_id, best_t, count, k, dx * dx + dy * dy, i, 0.0)
-    gx = (qx - ox) / cell
-    gy = (qy - oy) / cell
+    cell_start = points.index.cell_start
+    grid = points.index.grid
+    cell = grid.cell
+    ny = grid.ny
+    gx = (qx - grid.x0) / cell
+    gy = (qy - grid.y0) / cell
     if count == k:
         # warm start: every better point lies within the current k-th distance; scan that square of cells
-        lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, nx, ny)
+        lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, grid.nx, ny)
         for ix in range(lo_x, hi_x + 1):
             for iy in range(lo_y, hi_y + 1):
                 if _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]:
@@ -239,48 +403,15 @@ def knn_points(qx, qy, pts, ox, oy, cell, nx, ny, cell_start, k, best_d2, best_i
                             if d2 < best_d2[k - 1] and not _listed(best_id, count, i):
                                 count = _insert(best_d2, best_id, best_t, count, k, d2, i, 0.0)
         return count
-    cx = math.floor(gx)
-    cy = math.floor(gy)
-    # rings beyond this radius lie entirely outside the grid
-    rmax = max(max(cx, nx - 1 - cx), max(cy, ny - 1 - cy))
-    r = 0
-    while True:
-        x_lo = cx - r
-        x_hi = cx + r
-        y_lo = cy - r
-        y_hi = cy + r
-        for ix in range(max(x_lo, 0), min(x_hi, nx - 1) + 1):
-            on_x_edge = ix == x_lo or ix == x_hi
-            step = 1 if on_x_edge else y_hi - y_lo
-            iy = y_lo
-            while iy <= y_hi:
-                if 0 <= iy < ny and (count < k or _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]):
-                    c = ix * ny + iy
-                    start = cell_start[c]
-                    end = cell_start[c + 1]
-                    if end > start:
-                        _cell_point_d2(qx, qy, pts, start, end, buf)
-                        for i in range(start, end):
-                            d2 = buf[i - start]
-                            if count < k or d2 < best_d2[k - 1]:
-                                if n_warm > 0 and _listed(best_id, count, i):
-                                    continue
-                                count = _insert(best_d2, best_id, best_t, count, k, d2, i, 0.0)
-                if step == 0:
-                    break
-                iy += step
-        if r >= rmax:
-            break
-        if count == k:
-            # distance from the query to the outside of the (2r+1)^2 block of cells
-            b = min(
-                min(gx - (cx - r), (cx + r + 1) - gx),
-                min(gy - (cy - r), (cy + r + 1) - gy),
+    rings = rings_start(grid, gx, gy)
+    while not rings.done:
+        ix = rings.ix
+        iy = rings.iy
+        if count < k or _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]:
+            count = _point_cell(
+                qx, qy, pts, cell_start, k, best_d2, best_id, best_t, buf, ix * ny + iy, count, n_warm > 0
             )
-            b *= cell
-            if b > 0 and b * b >= best_d2[k - 1]:
-                break
-        r += 1
+        rings = rings_next(grid, rings, count == k, best_d2[k - 1])
     return count
 
 
@@ -293,31 +424,23 @@ def _cell_point_d2(qx, qy, pts, start, end, buf):
         buf[i - start] = dx * dx + dy * dy
 
 
-@nb.njit(cache=True, error_model="numpy", inline="always")
-def _square(gx, gy, radius, nx, ny):
-    """Cell ranges (inclusive) of the square of half-side ``radius`` (cells) around (gx, gy), in the grid."""
-    return (
-        max(math.floor(gx - radius), 0),
-        min(math.floor(gx + radius), nx - 1),
-        max(math.floor(gy - radius), 0),
-        min(math.floor(gy + radius), ny - 1),
-    )
+# ---------------------------------------------------------------------------------------------------------
+# Free segments.
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
 def _segment_cell(
-    qx, qy, seg, ecopy, ox, oy, cell, ny, cell_start, items, k, best_d2, best_id, best_t, buf, ix, iy, count,
-    check_dup,
+    qx, qy, seg, entries, cell_start, items, grid, k, best_d2, best_id, best_t, buf, ix, iy, count, check_dup
 ):  # fmt: skip
     """Offer the segments of cell (ix, iy) to the top-k buffers (float32 screen, exact float64 check)."""
-    c = ix * ny + iy
+    c = ix * grid.ny + iy
     start = cell_start[c]
     end = cell_start[c + 1]
     if start == end:
         return count
-    ccx = ox + (ix + 0.5) * cell
-    ccy = oy + (iy + 0.5) * cell
-    _cell_segment_d2(np.float32(qx - ccx), np.float32(qy - ccy), ecopy, start, end, buf)
+    ccx = grid.x0 + (ix + 0.5) * grid.cell
+    ccy = grid.y0 + (iy + 0.5) * grid.cell
+    _cell_segment_d2(np.float32(qx - ccx), np.float32(qy - ccy), entries, start, end, buf)
     lim2 = _screen_limit(best_d2, count, k)
     for e in range(start, end):
         if buf[e - start] > lim2:
@@ -366,36 +489,17 @@ def _cell_segment_d2(qrx, qry, ecopy, start, end, buf):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def knn_segments(
-    qx,
-    qy,
-    seg,
-    ecopy,
-    ox,
-    oy,
-    cell,
-    nx,
-    ny,
-    cell_start,
-    items,
-    k,
-    best_d2,
-    best_id,
-    best_t,
-    warm,
-    n_warm,
-    buf,
-):
-    """The k segments nearest (qx, qy): squared distances, ids and the clamped parameter t in [0, 1] of the
-    closest point ``s + t d`` (eqs. 13-14); returns how many were found. ``seg`` (M, 5) holds one segment
-    per row, (start x, start y, d x, d y, 1 / |d|^2); ``ecopy`` (5, E) float32 repeats them per index entry
-    (start relative to the entry's cell centre), so that a cell is first screened by a vectorised float32
-    pass (into ``buf``, as long as the fullest cell) and only candidates within the current k-th distance
-    plus 0.1 mm are evaluated exactly, in float64: the result is exact. A segment listed in several cells is
-    counted once. ``warm[:n_warm]``: distinct candidates tried first (as in :func:`knn_points`)."""
+def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, buf):
+    """The k segments of ``segments`` (a :class:`SegmentSet`) nearest (qx, qy): squared distances, ids and
+    the clamped parameter t in [0, 1] of the closest point ``s + t d`` (eqs. 13-14); returns how many were
+    found. A cell is first screened by a vectorised float32 pass over its entries (into ``buf``,
+    ``segments.index.most`` long) and only candidates within the current k-th distance plus 0.1 mm are
+    evaluated exactly, in float64: the result is exact. A segment listed in several cells is counted once.
+    ``warm[:n_warm]``: distinct candidates tried first (as in :func:`knn_points`)."""
     count = 0
-    if k == 0 or items.shape[0] == 0:
+    if k == 0 or segments.index.items.shape[0] == 0:
         return 0
+    seg = segments.seg
     for w in range(n_warm):
         i = warm[w]
         rx = qx - seg[i, 0]
@@ -404,8 +508,15 @@ def knn_segments(
         ex = rx - t * seg[i, 2]
         ey = ry - t * seg[i, 3]
         count = _insert(best_d2, best_id, best_t, count, k, ex * ex + ey * ey, i, t)
-    gx = (qx - ox) / cell
-    gy = (qy - oy) / cell
+    entries = segments.entries
+    cell_start = segments.index.cell_start
+    items = segments.index.items
+    grid = segments.index.grid
+    cell = grid.cell
+    nx = grid.nx
+    ny = grid.ny
+    gx = (qx - grid.x0) / cell
+    gy = (qy - grid.y0) / cell
     if count == k:  # warm start: scan the square of cells within the current k-th distance
         # the query's own cell first: in dense areas it holds the nearest beams and tightens the bound
         qcx = math.floor(gx)
@@ -413,9 +524,23 @@ def knn_segments(
         inside = 0 <= qcx < nx and 0 <= qcy < ny
         if inside:
             count = _segment_cell(
-                qx, qy, seg, ecopy, ox, oy, cell, ny, cell_start, items, k, best_d2, best_id, best_t,
-                buf, qcx, qcy, count, True,
-            )  # fmt: skip
+                qx,
+                qy,
+                seg,
+                entries,
+                cell_start,
+                items,
+                grid,
+                k,
+                best_d2,
+                best_id,
+                best_t,
+                buf,
+                qcx,
+                qcy,
+                count,
+                True,
+            )
         lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, nx, ny)
         for ix in range(lo_x, hi_x + 1):
             for iy in range(lo_y, hi_y + 1):
@@ -423,41 +548,46 @@ def knn_segments(
                     continue
                 if _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]:
                     count = _segment_cell(
-                        qx, qy, seg, ecopy, ox, oy, cell, ny, cell_start, items, k, best_d2, best_id, best_t,
-                        buf, ix, iy, count, True,
-                    )  # fmt: skip
+                        qx,
+                        qy,
+                        seg,
+                        entries,
+                        cell_start,
+                        items,
+                        grid,
+                        k,
+                        best_d2,
+                        best_id,
+                        best_t,
+                        buf,
+                        ix,
+                        iy,
+                        count,
+                        True,
+                    )
         return count
-    cx = math.floor(gx)
-    cy = math.floor(gy)
-    rmax = max(max(cx, nx - 1 - cx), max(cy, ny - 1 - cy))
-    r = 0
-    while True:
-        x_lo = cx - r
-        x_hi = cx + r
-        y_lo = cy - r
-        y_hi = cy + r
-        for ix in range(max(x_lo, 0), min(x_hi, nx - 1) + 1):
-            on_x_edge = ix == x_lo or ix == x_hi
-            step = 1 if on_x_edge else y_hi - y_lo
-            iy = y_lo
-            while iy <= y_hi:
-                if 0 <= iy < ny and (count < k or _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]):
-                    count = _segment_cell(
-                        qx, qy, seg, ecopy, ox, oy, cell, ny, cell_start, items, k, best_d2, best_id, best_t,
-                        buf, ix, iy, count, r > 0 or n_warm > 0,
-                    )  # fmt: skip
-                if step == 0:
-                    break
-                iy += step
-        if r >= rmax:
-            break
-        if count == k:
-            b = min(
-                min(gx - (cx - r), (cx + r + 1) - gx),
-                min(gy - (cy - r), (cy + r + 1) - gy),
+    rings = rings_start(grid, gx, gy)
+    while not rings.done:
+        ix = rings.ix
+        iy = rings.iy
+        if count < k or _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]:
+            count = _segment_cell(
+                qx,
+                qy,
+                seg,
+                entries,
+                cell_start,
+                items,
+                grid,
+                k,
+                best_d2,
+                best_id,
+                best_t,
+                buf,
+                ix,
+                iy,
+                count,
+                rings.r > 0 or n_warm > 0,
             )
-            b *= cell
-            if b > 0 and b * b >= best_d2[k - 1]:
-                break
-        r += 1
+        rings = rings_next(grid, rings, count == k, best_d2[k - 1])
     return count

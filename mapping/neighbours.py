@@ -1,32 +1,34 @@
-"""Beams made searchable: the occupied-endpoint and free-segment indexes, in the flat arrays the compiled core
-reads, plus the local training problems (``k_occ + k_free`` neighbours of a query) used by training."""
+"""Beams made searchable: the occupied-endpoint and free-segment indexes, as the named tuples the compiled
+core reads (:class:`mapping.index.PointSet`, :class:`mapping.index.SegmentSet`), plus the local training
+problems (``k_occ + k_free`` neighbours of a query) used by training."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mapping.beams import Beams
 from mapping.core import gather_batch
-from mapping.index import GridIndex, build_point_index, build_segment_index, segment_entry_copies
+from mapping.index import (
+    GridIndex,
+    PointSet,
+    SegmentSet,
+    build_point_index,
+    build_segment_index,
+    segment_entry_copies,
+)
 from mapping.unscented import BeamMoments, unpack_cov
 
 FloatArray = NDArray[np.float64]
 
 
-def _geom(index: GridIndex) -> FloatArray:
-    """(origin x, origin y, cell, nx, ny, most items in a cell) of an index, for the compiled core."""
-    most = int(np.diff(index.cell_start).max()) if index.cell_start.size > 1 else 0
-    o = index.origin_xy_m
-    return np.array([o[0], o[1], index.cell_m, index.shape[0], index.shape[1], most], dtype=np.float64)
-
-
 def auto_cell_m(beams: Beams, items_per_cell: float = 16.0, lo: float = 0.1, hi: float = 10.0) -> float:
     """A cell size for the neighbour grids: about ``items_per_cell`` endpoints per cell if they were spread
-    evenly over their bounding box (the Intel lab: 0.37 m; a sparse street of 28 scans: metres), so that
-    a sparse map is not searched through millions of empty cells; clamped to [lo, hi]."""
+    evenly over their bounding box (decimetres indoors, metres for a few scans of a street), so that a
+    sparse map is not searched through millions of empty cells; clamped to [lo, hi]."""
     pts = beams.hit_xy_m if beams.is_hit.any() else beams.ends_xy_m
     if pts.shape[0] == 0:
         return hi
@@ -112,19 +114,15 @@ class BeamIndex:
     def seg_dy(self) -> FloatArray:
         return self.seg[:, 3]
 
-    def core_args(self) -> tuple:
-        """The index arguments of :func:`mapping.core.predict_batch` / ``gather_batch``, in order."""
-        p, s = self.point_index, self.segment_index
-        return (
-            self.hit_xy,
-            _geom(p),
-            p.cell_start,
-            self.seg,
-            self.seg_entries,
-            _geom(s),
-            s.cell_start,
-            s.items,
-        )
+    @cached_property
+    def points(self) -> PointSet:
+        """The occupied endpoints for the compiled core (:func:`mapping.index.knn_points`)."""
+        return PointSet(self.hit_xy, self.point_index.packed)
+
+    @cached_property
+    def segments(self) -> SegmentSet:
+        """The free segments for the compiled core (:func:`mapping.index.knn_segments`)."""
+        return SegmentSet(self.seg, self.seg_entries, self.segment_index.packed)
 
     def gather(
         self, queries_xy_m: FloatArray, k_occ: int, k_free: int
@@ -135,7 +133,7 @@ class BeamIndex:
         occ = np.empty((q.shape[0], k_occ), np.int64)
         free = np.empty((q.shape[0], k_free), np.int64)
         t = np.empty((q.shape[0], k_free))
-        gather_batch(q, *self.core_args(), k_occ, k_free, occ, free, t)
+        gather_batch(q, self.points, self.segments, k_occ, k_free, occ, free, t)
         return occ, free, t
 
     def local_problems(

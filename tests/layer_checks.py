@@ -1,9 +1,9 @@
 """Comparing two renderings of the same map computed along different code paths.
 
-The compiled GP core runs with ``fastmath`` and solves 16 queries per SIMD block, so on some CPUs (e.g. with
-AVX-512's approximate reciprocals, or where a query lands in another lane of its block) the same query can
-come out a few float64 ulps apart, and that, rounded to the float32 layers, is at most a float32 ulp or two
-in a handful of cells (CI saw 1 cell of 424,242 differ by 1 ulp). "The same map" is therefore asserted as:
+The compiled GP core runs with ``fastmath`` and solves LANES (:data:`mapping.core.LANES`) queries per SIMD
+block, so on some CPUs (e.g. with AVX-512's approximate reciprocals, or where a query lands in another lane of
+its block) the same query can come out a few float64 ulps apart, and that, rounded to the float32 layers, is
+at most a float32 ulp or two in a handful of cells. "The same map" is therefore asserted as:
 every cell within 2 float32 ulps, and at least 99.99 % of the cells bit for bit identical. A real difference
 (another neighbour set, another pose) changes far more cells by far more than that.
 """

@@ -11,7 +11,8 @@ of the tile can use lies within ``rho`` of ``B``. The beams whose endpoint lies 
 sufficient: a map built from them gives every query of the tile the same neighbours as the map of all beams.
 They are kept in their original order. (Bounding ``r_k`` by its value at the centre ``c`` plus the
 half-diagonal ``h`` and taking the disc of radius ``r_k(c) + 2h`` is exact too, but with ``r_k << h`` that
-disc covers ~6 tiles; this support ~1.5.)
+disc, of radius about the tile's diagonal, covers about 2 pi tiles, where this support covers the tile grown
+by a margin of ``r_k``.)
 
 Incremental updates use the same radii. New data can only shrink ``r_k``: if no new endpoint lies within
 ``rho_occ`` and no new segment within ``rho_free`` of ``B``, no new item is nearer any query of the tile than
@@ -45,16 +46,11 @@ MAX_SUBDIVISIONS = 32
 MAX_K = 1000
 
 
-def _geom(index: GridIndex) -> FloatArray:
-    o = index.origin_xy_m
-    return np.array([o[0], o[1], index.cell_m, index.shape[0], index.shape[1]], dtype=np.float64)
-
-
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _cells_around(xa, ya, xb, yb, rho, geom):
-    """Cell ranges (inclusive, clipped) of the rectangle grown by ``rho`` and one cell, and whether the
-    unclipped range covers the whole grid."""
-    ox, oy, cell, nx, ny = geom[0], geom[1], geom[2], int(geom[3]), int(geom[4])
+def _cells_around(xa, ya, xb, yb, rho, grid):
+    """Cell ranges (inclusive, clipped) of the rectangle grown by ``rho`` and one cell of ``grid`` (a
+    :class:`~mapping.raster.GridGeometry`), and whether the unclipped range covers the whole grid."""
+    ox, oy, cell, nx, ny = grid.x0, grid.y0, grid.cell, grid.nx, grid.ny
     if not math.isfinite(rho):
         return 0, nx - 1, 0, ny - 1, True
     ix0 = math.floor((xa - rho - ox) / cell) - 1
@@ -139,11 +135,13 @@ def _item_rect(xy, is_seg, i, xa, ya, xb, yb):
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _collect(xa, ya, xb, yb, rho, geom, cell_start, items, xy, is_seg, mark, stamp, out_id, out_d):
+def _collect(xa, ya, xb, yb, rho, index, xy, is_seg, mark, stamp, out_id, out_d):
     """Items in the cells around the rectangle grown by ``rho`` (deduplicated with ``mark[i] == stamp``) and
     their distances to it; returns (count, whether every cell of the grid was visited)."""
-    ny = int(geom[4])
-    ix0, ix1, iy0, iy1, whole = _cells_around(xa, ya, xb, yb, rho, geom)
+    ny = index.grid.ny
+    cell_start = index.cell_start
+    items = index.items
+    ix0, ix1, iy0, iy1, whole = _cells_around(xa, ya, xb, yb, rho, index.grid)
     n = 0
     for ix in range(ix0, ix1 + 1):
         for iy in range(iy0, iy1 + 1):
@@ -160,14 +158,12 @@ def _collect(xa, ya, xb, yb, rho, geom, cell_start, items, xy, is_seg, mark, sta
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _kth_distance(px, py, k, geom, cell_start, items, xy, is_seg, mark, stamp, out_id, out_d):
+def _kth_distance(px, py, k, index, xy, is_seg, mark, stamp, out_id, out_d):
     """Exact distance from (px, py) to its k-th nearest item (inf if there are fewer than k), searching
     squares of doubling size; returns (distance, next free stamp)."""
-    radius = geom[2]
+    radius = index.grid.cell
     while True:
-        n, whole = _collect(
-            px, py, px, py, radius, geom, cell_start, items, xy, is_seg, mark, stamp, out_id, out_d
-        )
+        n, whole = _collect(px, py, px, py, radius, index, xy, is_seg, mark, stamp, out_id, out_d)
         stamp += 1
         inside = 0
         for j in range(n):
@@ -190,7 +186,7 @@ def _kth_distance(px, py, k, geom, cell_start, items, xy, is_seg, mark, stamp, o
 
 @nb.njit(cache=True, error_model="numpy")
 def _tile_radius(
-    xa, ya, xb, yb, subdiv, k, reach, geom, cell_start, items, xy, is_seg, mark, stamp, out_id, out_d, best
+    xa, ya, xb, yb, subdiv, k, reach, index, xy, is_seg, mark, stamp, out_id, out_d, best
 ):  # fmt: skip
     """rho = max of r_k over the (subdiv + 1)^2 corners of a subdivision of the rectangle, plus half a
     sub-cell diagonal: an upper bound of r_k over the rectangle, r_k being 1-Lipschitz. Returns
@@ -205,9 +201,7 @@ def _tile_radius(
     sy = (yb - ya) / subdiv
     reach = max(reach, 1e-3)
     while True:
-        n, whole = _collect(
-            xa, ya, xb, yb, reach, geom, cell_start, items, xy, is_seg, mark, stamp, out_id, out_d
-        )
+        n, whole = _collect(xa, ya, xb, yb, reach, index, xy, is_seg, mark, stamp, out_id, out_d)
         stamp += 1
         if not whole:  # keep the candidates within reach
             m = 0
@@ -261,9 +255,9 @@ def _tile_radius(
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _within(xa, ya, xb, yb, rho, geom, cell_start, items, xy, is_seg, mark, stamp, out_id, out_d):
+def _within(xa, ya, xb, yb, rho, index, xy, is_seg, mark, stamp, out_id, out_d):
     """Ids (unsorted) of the items within ``rho`` of the rectangle."""
-    n, _ = _collect(xa, ya, xb, yb, rho, geom, cell_start, items, xy, is_seg, mark, stamp, out_id, out_d)
+    n, _ = _collect(xa, ya, xb, yb, rho, index, xy, is_seg, mark, stamp, out_id, out_d)
     m = 0
     for j in range(n):
         if out_d[j] <= rho:
@@ -273,13 +267,15 @@ def _within(xa, ya, xb, yb, rho, geom, cell_start, items, xy, is_seg, mark, stam
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _any_within(rects, rhos, geom, cell_start, items, xy, is_seg):
+def _any_within(rects, rhos, index, xy, is_seg):
     """(T,) whether any item lies within ``rhos[t]`` of rectangle ``rects[t]``."""
-    ny = int(geom[4])
+    ny = index.grid.ny
+    cell_start = index.cell_start
+    items = index.items
     out = np.zeros(rects.shape[0], np.bool_)
     for t in range(rects.shape[0]):
         xa, ya, xb, yb = rects[t, 0], rects[t, 1], rects[t, 2], rects[t, 3]
-        ix0, ix1, iy0, iy1, _ = _cells_around(xa, ya, xb, yb, rhos[t], geom)
+        ix0, ix1, iy0, iy1, _ = _cells_around(xa, ya, xb, yb, rhos[t], index.grid)
         found = False
         for ix in range(ix0, ix1 + 1):
             for iy in range(iy0, iy1 + 1):
@@ -351,11 +347,10 @@ class SupportIndex:
         return len(self.beams)
 
     def _args(self, kind: str) -> tuple:
+        """(index for compiled code, item coordinates, whether the items are segments) of ``kind``."""
         if kind == "occ":
-            g = self.point_index
-            return _geom(g), g.cell_start, g.items, self.hit_xy, False
-        g = self.segment_index
-        return _geom(g), g.cell_start, g.items, self.seg_xy, True
+            return self.point_index.packed, self.hit_xy, False
+        return self.segment_index.packed, self.seg_xy, True
 
     def scratch(self) -> Scratch:
         """Work buffers for the queries below (as long as the index has items), reusable across calls."""

@@ -33,7 +33,6 @@ import numpy as np
 from datasets.errors import DatasetError
 from datasets.paths import SHARED_DATA_DIR
 from mapping.build import MapBuilder
-from mapping.core import gather_batch
 from mapping.gpmap import GPOccupancyMap, grid_centres, tile_order
 from pipeline.config import load_config
 from pipeline.evaluate_map import make_beams, reference_base_poses
@@ -90,21 +89,15 @@ def bench_mapping(progress: Progress | None = None, data_dir: Path | None = None
         full_bounds = gp.bounds_xy_m()  # every return, incl. a few seen far away through windows
         with _Timer() as t_compile:  # first call: compile or load the compiled core from numba's cache
             gp.query(pts[:64], sort=False)
-            occ = np.empty((64, cfg.k_occupied), np.int64)
-            free = np.empty((64, cfg.k_free), np.int64)
-            tt = np.empty((64, cfg.k_free))
-            gather_batch(pts[:64], *gp.index.core_args(), cfg.k_occupied, cfg.k_free, occ, free, tt)
+            gp.index.gather(pts[:64], cfg.k_occupied, cfg.k_free)
         bar.advance()
         with _Timer() as t_map:
             layers = gp.render(bounds, RESOLUTION_M)
         bar.advance()
         n = pts.shape[0]
-        occ = np.empty((n, cfg.k_occupied), np.int64)
-        free = np.empty((n, cfg.k_free), np.int64)
-        tt = np.empty((n, cfg.k_free))
         in_render_order = pts[tile_order(int(h), int(w))]  # the search alone, in the order render uses
         with _Timer() as t_gather:
-            gather_batch(in_render_order, *gp.index.core_args(), cfg.k_occupied, cfg.k_free, occ, free, tt)
+            gp.index.gather(in_render_order, cfg.k_occupied, cfg.k_free)
         with _Timer() as t_full:
             full = gp.render(full_bounds, RESOLUTION_M)
         bar.advance()
