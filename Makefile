@@ -6,8 +6,9 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-# Debian packages that the wheels need at import time (open3d links libusb-1.0).
-SYSTEM_PACKAGES := libusb-1.0-0
+# Debian packages: what the wheels need at import time (open3d links libusb-1.0), and the browser the report
+# test renders report.html in (headless).
+SYSTEM_PACKAGES := libusb-1.0-0 chromium
 
 .PHONY: all env system-deps demo test fuzz lint bench lock clean
 

@@ -1,11 +1,19 @@
-"""Figures of maps and metrics (matplotlib, Agg backend; small PNGs).
+"""Figures of maps and metrics (matplotlib, Agg backend).
 
-Every function takes arrays and writes one PNG; nothing here reads recordings.
+Every ``plot_*`` function takes arrays and writes one PNG; nothing here reads recordings. The figures of a
+run folder (``plot_layer``, ``plot_classified``, ``plot_before_after_maps``, ``plot_difference``,
+``plot_trajectory_covariances``) are drawn at the map's native resolution: every map cell gets at least one
+pixel (small maps an integer number of pixels per cell, see :func:`map_view`), and each has a builder
+(``*_figure``) returning the :class:`matplotlib.figure.Figure`, so that its legend and colour bar can be
+inspected before it is saved. The documentation figures (``plot_roc``, ``plot_street_panels``,
+``plot_method_rows``, ``plot_variance_pair``) stay small overviews.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import textwrap
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -13,21 +21,154 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.colors import ListedColormap
+from matplotlib import patheffects
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import EllipseCollection
+from matplotlib.colors import CenteredNorm, ListedColormap
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
 from numpy.typing import NDArray
 
 from mapping.exports import MapLayers
-from mapping.gpmap import classify
+from mapping.gpmap import FREE, OCCUPIED, UNSURE, classify
 
 CLASS_CMAP = ListedColormap(["0.55", "white", "black"])  # unsure (-1), free (0), occupied (1)
 _CLASS_STYLE = {"cmap": CLASS_CMAP, "vmin": -1, "vmax": 1, "interpolation": "nearest"}
 _PROB_STYLE = {"cmap": "gray_r", "vmin": 0.0, "vmax": 1.0}
+
+#: Resolution of the run-folder figures (pixels per inch); layouts are computed in whole pixels.
+DPI = 100
+#: A map whose longer side has fewer cells is drawn with an integer number of pixels per cell so that this
+#: side spans at least this many pixels.
+MIN_MAP_PX = 800
+#: The most map cells one panel shows at one pixel each: 16 million (4,000 x 4,000 cells, 400 m x 400 m at
+#: 0.1 m). Matplotlib's Agg renderer holds several float copies of an image while drawing it (tens of bytes
+#: per pixel), so this keeps a figure near a gigabyte of memory; a larger map (a 1e8-cell map, say) is shown
+#: downsampled by the smallest integer factor that fits (block means, see :func:`map_view`), and its title
+#: says so.
+MAX_PANEL_CELLS = 16_000_000
+#: The longest side of one panel in pixels (Agg refuses images wider than 2**16 pixels in all).
+MAX_PANEL_SIDE_PX = 30_000
+
+#: Colours of the classified map (display codes 0..3: free, unknown, unsure, occupied).
+FREE_COLOUR = "white"
+UNKNOWN_COLOUR = "#8fb8de"
+UNSURE_COLOUR = "0.6"
+OCCUPIED_COLOUR = "black"
+_DISPLAY_CLASS_CMAP = ListedColormap([FREE_COLOUR, UNKNOWN_COLOUR, UNSURE_COLOUR, OCCUPIED_COLOUR])
+_D_FREE, _D_UNKNOWN, _D_UNSURE, _D_OCCUPIED = 0, 1, 2, 3
+
+#: Colours of the trajectories and of the loop closures in the run-folder figures.
+TRAJECTORY_COLOURS = {"before": "tab:red", "after": "tab:blue"}
+CLOSURE_COLOUR = "#00c853"
+
+# Layout of the run-folder figures, in pixels at DPI.
+_LEFT_PX = 90  # y tick labels and the y label
+_GAP_PX = 90  # between panels (the right panel's y tick labels)
+_BOTTOM_PX = 50  # x tick labels and the x label
+_LEGEND_ROW_PX = 24
+_TITLE_LINE_PX = 19
+_PANEL_TITLE_PX = 24
+_MIN_PANEL_H_PX = 260  # room for a readable colour bar beside a flat map
+_MIN_FIG_W_PX = 720
+_COLORBAR_W_PX = 18
+
+
+@dataclass(frozen=True)
+class MapView:
+    """How a (H, W) layer is drawn: blocks of ``step`` x ``step`` cells become one displayed cell (1: every
+    cell shown), and each displayed cell is ``px_per_cell`` x ``px_per_cell`` pixels."""
+
+    shape_hw: tuple[int, int]
+    step: int
+    px_per_cell: int
+
+    @property
+    def shown_hw(self) -> tuple[int, int]:
+        """Displayed cells (rows, columns)."""
+        h, w = self.shape_hw
+        return -(-h // self.step), -(-w // self.step)
+
+    @property
+    def size_px(self) -> tuple[int, int]:
+        """The panel's size in pixels (width, height)."""
+        h, w = self.shown_hw
+        return w * self.px_per_cell, h * self.px_per_cell
+
+    @property
+    def downsampled(self) -> bool:
+        return self.step > 1
+
+    def note(self) -> str:
+        """The title's note on a downsampled map ("" at native resolution)."""
+        if not self.downsampled:
+            return ""
+        h, w = self.shape_hw
+        return f" [downsampled for display: {w} x {h} cells, {self.step} x {self.step} cells per pixel]"
+
+
+def map_view(
+    shape_hw: tuple[int, int], max_cells: int | None = None, max_side_px: int | None = None
+) -> MapView:
+    """At least one pixel per cell, up to ``max_cells`` cells (default :data:`MAX_PANEL_CELLS`) and
+    ``max_side_px`` pixels a side (default :data:`MAX_PANEL_SIDE_PX`) per panel; beyond, the smallest
+    integer downsampling factor that fits. A small map gets an integer number of pixels per cell so that its
+    longer side spans at least :data:`MIN_MAP_PX` pixels."""
+    max_cells = MAX_PANEL_CELLS if max_cells is None else max_cells
+    max_side_px = MAX_PANEL_SIDE_PX if max_side_px is None else max_side_px
+    h, w = (max(1, int(v)) for v in shape_hw)
+    step = 1
+    while -(-h // step) * -(-w // step) > max_cells or max(-(-h // step), -(-w // step)) > max_side_px:
+        step += 1
+    px = max(1, -(-MIN_MAP_PX // max(h, w))) if step == 1 else 1
+    return MapView((h, w), step, px)
+
+
+def downsample(array: NDArray, step: int, how: str = "mean") -> NDArray:
+    """(H, W) -> (ceil(H/step), ceil(W/step)): the finite mean (``"mean"``, float32, NaN where a block has
+    no finite value) or the maximum (``"max"``, same dtype) of each ``step`` x ``step`` block. Works one row
+    of blocks at a time, so that a huge map is never copied whole."""
+    a = np.asarray(array)
+    if step == 1:
+        return a
+    if how not in ("mean", "max"):
+        raise ValueError(f"downsample: how must be 'mean' or 'max', not {how!r}")
+    h, w = a.shape
+    hh, ww = -(-h // step), -(-w // step)
+    mean = how == "mean"
+    dtype = np.float32 if mean else a.dtype
+    fill = np.nan if mean else (False if a.dtype == bool else np.iinfo(a.dtype).min)
+    out = np.empty((hh, ww), dtype=dtype)
+    for i in range(hh):
+        band = np.full((step, ww * step), fill, dtype=dtype)
+        rows = a[i * step : (i + 1) * step]
+        band[: rows.shape[0], :w] = rows
+        blocks = band.reshape(step, ww, step)
+        if mean:
+            finite = np.isfinite(blocks)
+            total = np.where(finite, blocks, 0.0).sum(axis=(0, 2), dtype=np.float64)
+            count = finite.sum(axis=(0, 2))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out[i] = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+        else:
+            out[i] = blocks.max(axis=(0, 2))
+    return out
 
 
 def _extent(layers: MapLayers) -> tuple[float, float, float, float]:
     h, w = layers.shape
     x0, y0 = layers.origin_xy_m
     r = layers.resolution_m
+    return x0, x0 + w * r, y0, y0 + h * r
+
+
+def _view_extent(layers: MapLayers, view: MapView) -> tuple[float, float, float, float]:
+    """The world extent of the displayed cells (a downsampled map's last blocks may reach past the map)."""
+    h, w = view.shown_hw
+    x0, y0 = layers.origin_xy_m
+    r = layers.resolution_m * view.step
     return x0, x0 + w * r, y0, y0 + h * r
 
 
@@ -39,9 +180,203 @@ def _finish(fig, path: Path, dpi: int) -> Path:
     return path
 
 
-def _size(layers: MapLayers, width_in: float) -> tuple[float, float]:
-    h, w = layers.shape
-    return width_in, max(2.5, width_in * h / w * 0.9)
+def save_figure(fig: Figure, path: Path) -> Path:
+    """Write a run-folder figure (built by a ``*_figure`` function) as a PNG at its own size; returns the
+    path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=fig.dpi, metadata={"Software": None})
+    return path
+
+
+def _ate_text(ate_m: float | None) -> str:
+    return "" if ate_m is None or not np.isfinite(ate_m) else f" (ATE {ate_m:.3f} m)"
+
+
+@dataclass
+class _Canvas:
+    """A figure laid out in whole pixels: ``panels`` map axes of ``w_px`` x ``h_px`` side by side, a right
+    column ``right_px`` wide (colour bar), rows for a legend below and a wrapped title above."""
+
+    fig: Figure
+    axes: list[Axes]
+    left_px: int
+    bottom_px: int
+    right_x_px: int
+    w_px: int
+    h_px: int
+
+    def _frac(self, x_px: float, y_px: float, w_px: float, h_px: float) -> list[float]:
+        fw, fh = self.fig.get_size_inches() * DPI
+        return [x_px / fw, y_px / fh, w_px / fw, h_px / fh]
+
+    def colorbar_axes(self) -> Axes:
+        """An axes for a vertical colour bar in the right column, labelled ``"colorbar"``."""
+        h = max(self.h_px, 200)
+        return self.fig.add_axes(
+            self._frac(self.right_x_px + 15, self.bottom_px, _COLORBAR_W_PX, h), label="colorbar"
+        )
+
+    def legend_below(self, handles: Sequence, ncol: int) -> None:
+        """A legend under the panels (never over the map)."""
+        fw, fh = self.fig.get_size_inches() * DPI
+        self.fig.legend(
+            handles=list(handles),
+            loc="upper left",
+            bbox_to_anchor=(self.left_px / fw, (self.bottom_px - _BOTTOM_PX + 4) / fh),
+            ncol=ncol,
+            frameon=False,
+            fontsize=9,
+            handlelength=2.2,
+        )
+
+
+def _canvas(
+    w_px: int,
+    h_px: int,
+    title: str,
+    panels: int = 1,
+    right_px: int = 130,
+    legend_entries: int = 0,
+    panel_titles: bool = False,
+) -> tuple[_Canvas, int]:
+    """Lay out a figure around ``panels`` axes of exactly ``w_px`` x ``h_px`` pixels; returns the canvas and
+    the number of legend columns to use."""
+    width = max(_LEFT_PX + panels * w_px + (panels - 1) * _GAP_PX + right_px, _MIN_FIG_W_PX)
+    ncol = legend_entries if width >= 1100 else min(legend_entries, 2)
+    legend_rows = -(-legend_entries // ncol) if legend_entries else 0
+    lines = textwrap.wrap(title, max(40, (width - _LEFT_PX) // 7)) if title else []
+    bottom = _BOTTOM_PX + legend_rows * _LEGEND_ROW_PX + (8 if legend_rows else 0)
+    content = max(h_px, _MIN_PANEL_H_PX)
+    top = 14 + _TITLE_LINE_PX * len(lines) + (_PANEL_TITLE_PX if panel_titles else 0)
+    height = bottom + content + top
+    fig = Figure(figsize=(width / DPI, height / DPI), dpi=DPI)
+    FigureCanvasAgg(fig)
+    axes = [
+        fig.add_axes(
+            [(_LEFT_PX + k * (w_px + _GAP_PX)) / width, bottom / height, w_px / width, h_px / height],
+            label=f"panel{k}",
+        )
+        for k in range(panels)
+    ]
+    if lines:
+        fig.text(_LEFT_PX / width, 1 - 8 / height, "\n".join(lines), ha="left", va="top", fontsize=11)
+    right_x = _LEFT_PX + panels * w_px + (panels - 1) * _GAP_PX
+    return _Canvas(fig, axes, _LEFT_PX, bottom, right_x, w_px, h_px), max(ncol, 1)
+
+
+def _map_axes(ax: Axes, extent: tuple[float, float, float, float]) -> None:
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.tick_params(labelsize=8)
+
+
+def _show(ax: Axes, image: NDArray, extent, **style):
+    return ax.imshow(image, origin="lower", extent=extent, interpolation="nearest", aspect="auto", **style)
+
+
+def _unknown_overlay(ax: Axes, unknown: NDArray, view: MapView, extent) -> None:
+    """Paint the cells of the (H, W) bool mask ``unknown`` in :data:`UNKNOWN_COLOUR` (others transparent)."""
+    mask = downsample(np.asarray(unknown, dtype=bool), view.step, "max")
+    rgba = np.zeros((*mask.shape, 4), dtype=np.float32)
+    rgba[mask] = matplotlib.colors.to_rgba(UNKNOWN_COLOUR)
+    _show(ax, rgba, extent)
+
+
+def _check_mask(unknown: NDArray | None, shape_hw: tuple[int, int]) -> None:
+    if unknown is not None and np.shape(unknown) != tuple(shape_hw):
+        raise ValueError(f"unknown mask of shape {np.shape(unknown)} for a map of shape {tuple(shape_hw)}")
+
+
+def _mark_prior(cax: Axes, cbar, prior_variance: float | NDArray) -> None:
+    """Mark the prior variance (the level of unobserved cells) on a variance colour bar: a line and a tick
+    labelled "unobserved" for one level, a hatched band over the range of a per-cell (H, W) prior."""
+    prior = np.asarray(prior_variance, dtype=np.float64)
+    finite = prior[np.isfinite(prior)]
+    if finite.size == 0:
+        return
+    lo, hi = float(finite.min()), float(finite.max())
+    vmin, vmax = cbar.mappable.norm.vmin, cbar.mappable.norm.vmax
+    span = max(vmax - vmin, 1e-12)
+    if hi - lo <= 1e-6 * span:
+        level = 0.5 * (lo + hi)
+        cax.axhline(level, color="red", lw=2.5)
+        label = f"{level:.3g} unobserved\n(prior variance)"
+    else:
+        cax.axhspan(lo, hi, facecolor="none", edgecolor="red", hatch="///", lw=1.5)
+        level = 0.5 * (lo + hi)
+        label = f"{lo:.3g}-{hi:.3g} unobserved\n(prior variance)"
+    ticks = [t for t in cbar.get_ticks() if vmin <= t <= vmax and abs(t - level) > 0.08 * span]
+    cbar.set_ticks([*ticks, level], labels=[f"{t:.3g}" for t in ticks] + [label])
+    for text in cax.get_yticklabels()[-1:]:
+        text.set_color("red")
+        text.set_fontweight("bold")
+
+
+def layer_figure(
+    layers: MapLayers,
+    which: str,
+    title: str = "",
+    path_xy_m: NDArray | None = None,
+    prior_variance: float | NDArray | None = None,
+    unknown: NDArray | None = None,
+    ate_m: float | None = None,
+) -> Figure:
+    """One layer (``probability``, ``variance`` or ``mean``) at native resolution with its colour bar and,
+    optionally, the robot's path (N, 2) in metres. ``prior_variance`` (a level, or (H, W) per cell) marks on
+    the variance colour bar what unobserved cells read; ``unknown`` (H, W) bool paints never-observed cells
+    (probability and mean layers); ``ate_m`` goes into the title."""
+    if which not in ("probability", "variance", "mean"):
+        raise ValueError(f"layer_figure: unknown layer {which!r} (probability, variance or mean)")
+    _check_mask(unknown, layers.shape)
+    view = map_view(layers.shape)
+    data = downsample(getattr(layers, which), view.step)
+    extent = _view_extent(layers, view)
+    legend: list = []
+    if path_xy_m is not None and len(path_xy_m):
+        legend.append(Line2D([], [], color="tab:red", lw=1.2, label="trajectory"))
+    show_unknown = unknown is not None and which != "variance"
+    if show_unknown:
+        legend.append(Patch(facecolor=UNKNOWN_COLOUR, edgecolor="0.3", label="unknown (never observed)"))
+    right = 210 if which == "variance" and prior_variance is not None else 130
+    full_title = f"{title}{_ate_text(ate_m)}{view.note()}"
+    canvas, ncol = _canvas(*view.size_px, full_title, right_px=right, legend_entries=len(legend))
+    ax = canvas.axes[0]
+    if which == "probability":
+        im = _show(ax, data, extent, cmap="gray_r", vmin=0.0, vmax=1.0)
+        label = "p(occupied)"
+    elif which == "variance":
+        finite = data[np.isfinite(data)]
+        vmax = float(finite.max()) if finite.size else 1.0
+        if prior_variance is not None:
+            prior = np.asarray(prior_variance, dtype=np.float64)
+            if prior.ndim and prior.shape != tuple(layers.shape):
+                raise ValueError(f"prior_variance of shape {prior.shape} for a map of shape {layers.shape}")
+            if np.isfinite(prior).any():
+                vmax = max(vmax, float(np.nanmax(prior)))
+        vmin = min(0.0, float(finite.min())) if finite.size else 0.0
+        im = _show(ax, data, extent, cmap="viridis", vmin=vmin, vmax=max(vmax, vmin + 1e-12))
+        label = "GP predictive variance"
+    else:
+        finite = np.abs(data[np.isfinite(data)])
+        lim = float(finite.max()) if finite.size else 1.0
+        im = _show(ax, data, extent, cmap="RdBu_r", norm=CenteredNorm(0.0, max(lim, 1e-9)))
+        label = "GP mean (latent)"
+    if show_unknown:
+        _unknown_overlay(ax, unknown, view, extent)
+    if path_xy_m is not None and len(path_xy_m):
+        ax.plot(path_xy_m[:, 0], path_xy_m[:, 1], "-", color="tab:red", lw=1.0, alpha=0.85)
+    _map_axes(ax, extent)
+    cax = canvas.colorbar_axes()
+    cbar = canvas.fig.colorbar(im, cax=cax, label=label)
+    cax.tick_params(labelsize=8)
+    if which == "variance" and prior_variance is not None:
+        _mark_prior(cax, cbar, prior_variance)
+    if legend:
+        canvas.legend_below(legend, ncol)
+    return canvas.fig
 
 
 def plot_layer(
@@ -50,29 +385,50 @@ def plot_layer(
     path: Path,
     title: str = "",
     path_xy_m: NDArray | None = None,
-    width_in: float = 7.0,
-    dpi: int = 110,
+    prior_variance: float | NDArray | None = None,
+    unknown: NDArray | None = None,
+    ate_m: float | None = None,
 ) -> Path:
-    """One layer (``probability``, ``variance`` or ``mean``) with a colour bar and, optionally, the robot's
-    path (N, 2)."""
-    data = getattr(layers, which)
-    fig, ax = plt.subplots(figsize=_size(layers, width_in))
-    if which == "probability":
-        im = ax.imshow(data, origin="lower", extent=_extent(layers), cmap="gray_r", vmin=0.0, vmax=1.0)
-        label = "p(occupied)"
-    elif which == "variance":
-        im = ax.imshow(data, origin="lower", extent=_extent(layers), cmap="viridis")
-        label = "GP variance"
-    else:
-        im = ax.imshow(data, origin="lower", extent=_extent(layers), cmap="RdBu_r")
-        label = "GP mean"
-    if path_xy_m is not None:
-        ax.plot(path_xy_m[:, 0], path_xy_m[:, 1], "r-", lw=0.6, alpha=0.8)
-    fig.colorbar(im, ax=ax, label=label, fraction=0.046, pad=0.02)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title(title)
-    return _finish(fig, path, dpi)
+    """Write :func:`layer_figure` as a PNG at ``path``; returns the path."""
+    return save_figure(layer_figure(layers, which, title, path_xy_m, prior_variance, unknown, ate_m), path)
+
+
+def classified_figure(
+    layers: MapLayers,
+    occupied_threshold: float = 0.65,
+    free_threshold: float = 0.35,
+    title: str = "",
+    unknown: NDArray | None = None,
+    ate_m: float | None = None,
+) -> Figure:
+    """Occupied (black, p >= occupied_threshold), free (white, p <= free_threshold), unsure (grey) and, when
+    the (H, W) bool mask ``unknown`` is given, unknown (blue; it overrides the class), with a legend."""
+    _check_mask(unknown, layers.shape)
+    cls = classify(layers.probability, occupied_threshold, free_threshold)
+    codes = np.full(cls.shape, _D_UNSURE, dtype=np.int8)
+    codes[cls == FREE] = _D_FREE
+    codes[cls == OCCUPIED] = _D_OCCUPIED
+    codes[cls == UNSURE] = _D_UNSURE
+    if unknown is not None:
+        codes[np.asarray(unknown, dtype=bool)] = _D_UNKNOWN
+    view = map_view(layers.shape)
+    shown = downsample(codes, view.step, "max")  # a block shows its most significant class
+    extent = _view_extent(layers, view)
+    legend = [
+        Patch(facecolor=OCCUPIED_COLOUR, edgecolor="0.3", label=f"occupied (p >= {occupied_threshold:g})"),
+        Patch(facecolor=FREE_COLOUR, edgecolor="0.3", label=f"free (p <= {free_threshold:g})"),
+        Patch(facecolor=UNSURE_COLOUR, edgecolor="0.3", label="unsure (in between)"),
+    ]
+    if unknown is not None:
+        legend.append(Patch(facecolor=UNKNOWN_COLOUR, edgecolor="0.3", label="unknown (never observed)"))
+    default = f"classified: occupied p >= {occupied_threshold:g}, free p <= {free_threshold:g}"
+    full_title = f"{title or default}{_ate_text(ate_m)}{view.note()}"
+    canvas, ncol = _canvas(*view.size_px, full_title, right_px=40, legend_entries=len(legend))
+    ax = canvas.axes[0]
+    _show(ax, shown, extent, cmap=_DISPLAY_CLASS_CMAP, vmin=-0.5, vmax=3.5)
+    _map_axes(ax, extent)
+    canvas.legend_below(legend, ncol)
+    return canvas.fig
 
 
 def plot_classified(
@@ -81,17 +437,306 @@ def plot_classified(
     occupied_threshold: float = 0.65,
     free_threshold: float = 0.35,
     title: str = "",
-    width_in: float = 7.0,
-    dpi: int = 110,
+    unknown: NDArray | None = None,
+    ate_m: float | None = None,
 ) -> Path:
-    """Occupied (black, p >= occupied_threshold), free (white, p <= free_threshold), unsure (grey)."""
-    cls = classify(layers.probability, occupied_threshold, free_threshold)
-    fig, ax = plt.subplots(figsize=_size(layers, width_in))
-    ax.imshow(cls, origin="lower", extent=_extent(layers), **_CLASS_STYLE)
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title(title or f"occupied p >= {occupied_threshold}, free p <= {free_threshold}, grey unsure")
-    return _finish(fig, path, dpi)
+    """Write :func:`classified_figure` as a PNG at ``path``; returns the path."""
+    return save_figure(
+        classified_figure(layers, occupied_threshold, free_threshold, title, unknown, ate_m), path
+    )
+
+
+def _draw_closures(ax: Axes, closures_xy_m: NDArray) -> None:
+    """Loop closures (C, 2, 2): a thick outlined line from the query position (circle) to the matched
+    earlier position (square)."""
+    outline = [patheffects.Stroke(linewidth=4.5, foreground="black"), patheffects.Normal()]
+    for seg in np.asarray(closures_xy_m, dtype=np.float64):
+        ax.plot(seg[:, 0], seg[:, 1], "-", color=CLOSURE_COLOUR, lw=2.5, path_effects=outline, zorder=5)
+    seg = np.asarray(closures_xy_m, dtype=np.float64)
+    style = {"color": CLOSURE_COLOUR, "mec": "black", "mew": 1.2, "ms": 8, "ls": "none", "zorder": 6}
+    ax.plot(seg[:, 0, 0], seg[:, 0, 1], marker="o", **style)
+    ax.plot(seg[:, 1, 0], seg[:, 1, 1], marker="s", **style)
+
+
+def _closure_handle(count: int) -> Line2D:
+    return Line2D(
+        [],
+        [],
+        color=CLOSURE_COLOUR,
+        lw=2.5,
+        marker="o",
+        mec="black",
+        ms=7,
+        label=f"loop closure x{count} (circle: query, square: matched scan)",
+    )
+
+
+def _check_closures(closures_xy_m: NDArray | None) -> NDArray | None:
+    if closures_xy_m is None or len(closures_xy_m) == 0:
+        return None
+    seg = np.asarray(closures_xy_m, dtype=np.float64)
+    if seg.ndim != 3 or seg.shape[1:] != (2, 2):
+        raise ValueError(f"closures_xy_m must be (C, 2, 2), not {seg.shape}")
+    return seg
+
+
+def before_after_figure(
+    before: MapLayers,
+    after: MapLayers,
+    path_before_xy_m: NDArray | None = None,
+    path_after_xy_m: NDArray | None = None,
+    closures_xy_m: NDArray | None = None,
+    titles: tuple[str, str] = ("before loop closure", "after loop closure"),
+    ate_m: Mapping[str, float | None] | None = None,
+    title: str = "",
+) -> Figure:
+    """Two probability maps side by side at native resolution with one colour bar, each with its trajectory
+    (N, 2); loop closures ``closures_xy_m`` (C, 2, 2) (query and matched positions on the ``after``
+    trajectory) drawn on the right panel, thick, with markers on both ends. ``ate_m`` ``{"before": m,
+    "after": m}`` (either may be None) goes into the panel titles."""
+    views = [map_view(before.shape), map_view(after.shape)]
+    view = max(views, key=lambda v: v.step)
+    w_px = max(v.size_px[0] for v in views)
+    h_px = max(v.size_px[1] for v in views)
+    closures = _check_closures(closures_xy_m)
+    legend: list = []
+    for name, traj in (("before", path_before_xy_m), ("after", path_after_xy_m)):
+        if traj is not None and len(traj):
+            legend.append(Line2D([], [], color=TRAJECTORY_COLOURS[name], lw=1.5, label=f"trajectory {name}"))
+    if closures is not None:
+        legend.append(_closure_handle(len(closures)))
+    canvas, ncol = _canvas(
+        w_px, h_px, f"{title}{view.note()}", panels=2, legend_entries=len(legend), panel_titles=True
+    )
+    ate_m = ate_m or {}
+    im = None
+    for ax, layers, traj, name, panel_title in zip(
+        canvas.axes,
+        (before, after),
+        (path_before_xy_m, path_after_xy_m),
+        ("before", "after"),
+        titles,
+        strict=True,
+    ):
+        v = map_view(layers.shape)
+        extent = _view_extent(layers, v)
+        im = _show(ax, downsample(layers.probability, v.step), extent, **_PROB_STYLE)
+        if traj is not None and len(traj):
+            ax.plot(traj[:, 0], traj[:, 1], "-", color=TRAJECTORY_COLOURS[name], lw=1.2, alpha=0.9)
+        if name == "after" and closures is not None:
+            _draw_closures(ax, closures)
+        _map_axes(ax, extent)
+        ax.set_title(f"{panel_title}{_ate_text(ate_m.get(name))}", fontsize=10)
+    canvas.fig.colorbar(im, cax=canvas.colorbar_axes(), label="p(occupied)")
+    if legend:
+        canvas.legend_below(legend, ncol)
+    return canvas.fig
+
+
+def plot_before_after_maps(
+    before: MapLayers,
+    after: MapLayers,
+    path: Path,
+    path_before_xy_m: NDArray | None = None,
+    path_after_xy_m: NDArray | None = None,
+    closures_xy_m: NDArray | None = None,
+    titles: tuple[str, str] = ("before loop closure", "after loop closure"),
+    ate_m: Mapping[str, float | None] | None = None,
+    title: str = "",
+) -> Path:
+    """Write :func:`before_after_figure` as a PNG at ``path``; returns the path."""
+    fig = before_after_figure(
+        before, after, path_before_xy_m, path_after_xy_m, closures_xy_m, titles, ate_m, title
+    )
+    return save_figure(fig, path)
+
+
+def difference_figure(
+    before: MapLayers,
+    after: MapLayers,
+    title: str = "",
+    path_after_xy_m: NDArray | None = None,
+    closures_xy_m: NDArray | None = None,
+    ate_m: Mapping[str, float | None] | None = None,
+) -> Figure:
+    """``p_after - p_before`` per cell (maps of the same shape and origin) on a diverging colour map centred
+    at 0 (red: more occupied after loop closure, blue: more free), symmetric about 0 up to the largest
+    change; optionally the ``after`` trajectory (N, 2) and the loop closures (C, 2, 2)."""
+    if before.shape != after.shape or not np.allclose(before.origin_xy_m, after.origin_xy_m):
+        raise ValueError(
+            f"difference of maps on different grids: {before.shape} at {before.origin_xy_m} and "
+            f"{after.shape} at {after.origin_xy_m}"
+        )
+    view = map_view(after.shape)
+    diff = downsample(
+        np.asarray(after.probability, np.float32) - np.asarray(before.probability, np.float32), view.step
+    )
+    extent = _view_extent(after, view)
+    finite = np.abs(diff[np.isfinite(diff)])
+    lim = max(float(finite.max()) if finite.size else 0.0, 0.05)
+    closures = _check_closures(closures_xy_m)
+    legend: list = []
+    if path_after_xy_m is not None and len(path_after_xy_m):
+        legend.append(Line2D([], [], color="0.2", lw=1.2, label="trajectory after"))
+    if closures is not None:
+        legend.append(_closure_handle(len(closures)))
+    ate_m = ate_m or {}
+    ate = ""
+    if ate_m.get("before") is not None or ate_m.get("after") is not None:
+        b, a = ate_m.get("before"), ate_m.get("after")
+        ate = f" (ATE {'?' if b is None else f'{b:.3f}'} -> {'?' if a is None else f'{a:.3f}'} m)"
+    default = "change of p(occupied) with loop closure: after - before"
+    canvas, ncol = _canvas(
+        *view.size_px, f"{title or default}{ate}{view.note()}", right_px=170, legend_entries=len(legend)
+    )
+    ax = canvas.axes[0]
+    im = _show(ax, diff, extent, cmap="RdBu_r", norm=CenteredNorm(0.0, lim))
+    if path_after_xy_m is not None and len(path_after_xy_m):
+        ax.plot(path_after_xy_m[:, 0], path_after_xy_m[:, 1], "-", color="0.2", lw=0.9, alpha=0.7)
+    if closures is not None:
+        _draw_closures(ax, closures)
+    _map_axes(ax, extent)
+    cax = canvas.colorbar_axes()
+    canvas.fig.colorbar(im, cax=cax, label="p_after - p_before\n(red: more occupied after)")
+    cax.tick_params(labelsize=8)
+    if legend:
+        canvas.legend_below(legend, ncol)
+    return canvas.fig
+
+
+def plot_difference(
+    before: MapLayers,
+    after: MapLayers,
+    path: Path,
+    title: str = "",
+    path_after_xy_m: NDArray | None = None,
+    closures_xy_m: NDArray | None = None,
+    ate_m: Mapping[str, float | None] | None = None,
+) -> Path:
+    """Write :func:`difference_figure` as a PNG at ``path``; returns the path."""
+    return save_figure(difference_figure(before, after, title, path_after_xy_m, closures_xy_m, ate_m), path)
+
+
+def covariance_ellipses(
+    xy_m: NDArray, cov_xytheta: NDArray, n_sigma: float = 2.0
+) -> tuple[NDArray, NDArray, NDArray]:
+    """Ellipses of the (N, 3, 3) (x, y, theta) covariances' position blocks at ``n_sigma``: full axis
+    lengths (N,) and (N,) in metres (major, minor: ``2 * n_sigma * sqrt(eigenvalue)``) and the major axis'
+    angle (N,) in degrees from +x. NaN entries give zero-size ellipses."""
+    cov = np.asarray(cov_xytheta, dtype=np.float64)
+    if cov.ndim != 3 or cov.shape[1:] != (3, 3) or len(cov) != len(xy_m):
+        raise ValueError(f"covariances of shape {cov.shape} for {len(xy_m)} poses (need (N, 3, 3))")
+    block = np.nan_to_num(cov[:, :2, :2])
+    block = 0.5 * (block + np.swapaxes(block, 1, 2))
+    values, vectors = np.linalg.eigh(block)  # ascending
+    values = np.clip(values, 0.0, None)
+    major = 2.0 * n_sigma * np.sqrt(values[:, 1])
+    minor = 2.0 * n_sigma * np.sqrt(values[:, 0])
+    angle_deg = np.degrees(np.arctan2(vectors[:, 1, 1], vectors[:, 0, 1]))
+    return major, minor, angle_deg
+
+
+def trajectory_covariances_figure(
+    trajectories_xy_m: Mapping[str, NDArray],
+    covariances: Mapping[str, NDArray] | None = None,
+    every: int = 10,
+    closures_xy_m: NDArray | None = None,
+    ate_m: Mapping[str, float | None] | None = None,
+    layers: MapLayers | None = None,
+    title: str = "",
+    n_sigma: float = 2.0,
+) -> Figure:
+    """Trajectories ``{name: (N, 2) or (N, 3)}`` (metres) with the ``n_sigma`` position ellipses of their
+    world-frame (N, 3, 3) covariances ``{name: cov}`` at every ``every``-th pose (and the last), to scale;
+    loop closures (C, 2, 2) with markers on both ends; ``ate_m`` ``{name: m}`` in the legend; over the map
+    ``layers`` (faint, at native resolution) when given, else on a plain equal-aspect plot."""
+    if every < 1:
+        raise ValueError(f"every must be >= 1, not {every}")
+    covariances = covariances or {}
+    ate_m = ate_m or {}
+    closures = _check_closures(closures_xy_m)
+    trajs = {k: np.asarray(v, dtype=np.float64)[:, :2] for k, v in trajectories_xy_m.items() if len(v)}
+    if layers is not None:
+        view = map_view(layers.shape)
+        extent = _view_extent(layers, view)
+        w_px, h_px = view.size_px
+        note = view.note()
+    else:
+        pts = np.concatenate([*trajs.values(), *([closures.reshape(-1, 2)] if closures is not None else [])])
+        pts = pts[np.isfinite(pts).all(axis=1)] if len(pts) else np.zeros((1, 2))
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        size = np.maximum(hi - lo, 1.0) * 1.08
+        centre = 0.5 * (lo + hi)
+        long_px = 900
+        if size[0] >= size[1]:
+            w_px, h_px = long_px, max(int(long_px * size[1] / size[0] + 0.5), 1)
+        else:
+            w_px, h_px = max(int(long_px * size[0] / size[1] + 0.5), 1), long_px
+        scale = max(size[0] / w_px, size[1] / h_px)  # metres per pixel, equal in x and y
+        half = 0.5 * scale * np.array([w_px, h_px])
+        extent = (centre[0] - half[0], centre[0] + half[0], centre[1] - half[1], centre[1] + half[1])
+        note = ""
+    legend: list = []
+    colours = {}
+    for k, name in enumerate(trajs):
+        colours[name] = TRAJECTORY_COLOURS.get(name, f"C{k + 2}")
+        label = f"{name}{_ate_text(ate_m.get(name))}"
+        legend.append(Line2D([], [], color=colours[name], lw=1.5, label=label))
+    drawn = [name for name in trajs if name in covariances]
+    if drawn:
+        legend.append(
+            Patch(facecolor="none", edgecolor="0.2", label=f"{n_sigma:g}-sigma position, every {every} poses")
+        )
+    if closures is not None:
+        legend.append(_closure_handle(len(closures)))
+    default = f"trajectories with {n_sigma:g}-sigma position covariance ellipses (to scale)"
+    canvas, ncol = _canvas(w_px, h_px, f"{title or default}{note}", right_px=40, legend_entries=len(legend))
+    ax = canvas.axes[0]
+    if layers is not None:
+        _show(
+            ax, downsample(layers.probability, view.step), extent, cmap="gray_r", vmin=0, vmax=1, alpha=0.45
+        )
+    for name, xy in trajs.items():
+        ax.plot(xy[:, 0], xy[:, 1], "-", color=colours[name], lw=1.2, alpha=0.9)
+        if name in covariances:
+            idx = np.unique(np.r_[np.arange(0, len(xy), every), len(xy) - 1])
+            major, minor, angle = covariance_ellipses(xy, covariances[name], n_sigma)
+            ax.add_collection(
+                EllipseCollection(
+                    major[idx],
+                    minor[idx],
+                    angle[idx],
+                    units="xy",
+                    offsets=xy[idx],
+                    offset_transform=ax.transData,
+                    facecolors=matplotlib.colors.to_rgba(colours[name], 0.12),
+                    edgecolors=colours[name],
+                    linewidths=1.0,
+                    zorder=4,
+                )
+            )
+    if closures is not None:
+        _draw_closures(ax, closures)
+    _map_axes(ax, extent)
+    canvas.legend_below(legend, ncol)
+    return canvas.fig
+
+
+def plot_trajectory_covariances(
+    path: Path,
+    trajectories_xy_m: Mapping[str, NDArray],
+    covariances: Mapping[str, NDArray] | None = None,
+    every: int = 10,
+    closures_xy_m: NDArray | None = None,
+    ate_m: Mapping[str, float | None] | None = None,
+    layers: MapLayers | None = None,
+    title: str = "",
+) -> Path:
+    """Write :func:`trajectory_covariances_figure` as a PNG at ``path``; returns the path."""
+    fig = trajectory_covariances_figure(
+        trajectories_xy_m, covariances, every, closures_xy_m, ate_m, layers, title
+    )
+    return save_figure(fig, path)
 
 
 def plot_roc(
@@ -155,44 +800,6 @@ def plot_street_panels(
     for ax in a:
         ax.tick_params(labelsize=7)
     fig.tight_layout()
-    return _finish(fig, path, dpi)
-
-
-def plot_before_after_maps(
-    before: MapLayers,
-    after: MapLayers,
-    path: Path,
-    path_before_xy_m: NDArray | None = None,
-    path_after_xy_m: NDArray | None = None,
-    closures_xy_m: NDArray | None = None,
-    titles: tuple[str, str] = ("before loop closure", "after loop closure"),
-    width_in: float = 12.0,
-    dpi: int = 100,
-) -> Path:
-    """Two probability maps side by side with one colour bar, each with its trajectory (N, 2); loop
-    closures ``closures_xy_m`` (C, 2, 2) (query and target positions on the ``after`` trajectory) are drawn
-    on the right panel."""
-    h, w = after.shape
-    fig, axes = plt.subplots(1, 2, figsize=(width_in, max(3.0, width_in / 2 * h / w * 0.95 + 0.6)))
-    im = None
-    for ax, layers, traj, title in zip(
-        axes, (before, after), (path_before_xy_m, path_after_xy_m), titles, strict=True
-    ):
-        im = ax.imshow(layers.probability, origin="lower", extent=_extent(layers), **_PROB_STYLE)
-        if traj is not None and len(traj):
-            ax.plot(traj[:, 0], traj[:, 1], "-", color="tab:red", lw=0.7, alpha=0.85, label="trajectory")
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
-        ax.set_title(title, fontsize=10)
-    if closures_xy_m is not None and len(closures_xy_m):
-        for k, seg in enumerate(np.asarray(closures_xy_m)):
-            axes[1].plot(
-                seg[:, 0], seg[:, 1], "-", color="tab:green", lw=0.6, label="loop closure" if k == 0 else None
-            )
-    for ax in axes:
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(loc="lower right", fontsize=7)
-    fig.colorbar(im, ax=axes, label="p(occupied)", fraction=0.025, pad=0.02)
     return _finish(fig, path, dpi)
 
 

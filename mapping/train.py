@@ -53,11 +53,17 @@ class GPParams:
     info: dict[str, Any] = field(default_factory=dict)
 
     @property
+    def prior_variance(self) -> float:
+        """The latent prior variance ``k(x*, x*)``: the variance of a query no data reach. :mod:`mapping.core`
+        solves every query in coordinates centred on it, so this is the kernel's diagonal at the origin for
+        every query, also for the non-stationary NN kernel (eq. 7)."""
+        return float(self.kernel.diag(np.zeros((1, 2)))[0])
+
+    @property
     def unseen_probability(self) -> float:
         """p(occ) where no data reach: the link at mu = 0 and the prior variance k(x, x) plus the noise, as
         mapping.core answers a query without neighbours (the level unobserved space reads as)."""
-        prior_var = float(self.kernel.diag(np.zeros((1, 2)))[0]) + self.noise_var
-        return float(pls_probability(0.0, prior_var, self.alpha, self.beta))
+        return float(pls_probability(0.0, self.prior_variance + self.noise_var, self.alpha, self.beta))
 
     def to_dict(self) -> dict[str, Any]:
         """The parameter file's content; ``unseen_probability`` is derived (not read back)."""

@@ -12,6 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from datasets.config import InputConfig, MovedKeyError
 from datasets.errors import ConfigError
 from mapping.config import MappingConfig
+from mapping.exports import UNKNOWN_VARIANCE_FRACTION
 from pipeline.scale_config import ScaleConfig
 from slam.config import SlamConfig
 
@@ -24,16 +25,42 @@ CLI_OPTIONS: dict[str, str] = {
     "mapping.resolution_m": "--resolution",
     "mapping.mapper": "--mapper",
     "scale.scheduler": "--scheduler",
+    "export.bag_format": "--bag-format",
 }
 
 
 class ExportConfig(BaseModel):
-    """Which map exports a run writes."""
+    """Which map exports a run writes, and the one classification planners get from all of them.
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    A cell is unknown when its GP variance exceeds ``unknown_variance_fraction`` of the prior variance;
+    a known cell is occupied when p(occ) >= ``mapping.occupied_threshold``, free when p(occ) <=
+    ``mapping.free_threshold``, unknown between. The map_server PGM (``trinary``: 0 / 254 / 205) and the
+    bag's ``nav_msgs/OccupancyGrid`` (100 / 0 / -1) both carry exactly this classification.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     bag_format: str = Field("mcap", pattern="^(mcap|bag)$", description="maps bag: ROS2 .mcap or ROS1 .bag")
     png: bool = Field(True, description="write PNG figures")
+    next_best_views: int = Field(
+        5,
+        ge=0,
+        le=100,
+        description="next-best views of each map's exploration plan (mapping.frontier: frontier cells, the "
+        "expected variance reduction of a scan at candidate poses): the maps bag's "
+        "/NAME/next_best_views and GridMap layers 'frontier' / 'information'; 0: no exploration plan",
+    )
+    unknown_variance_fraction: float = Field(
+        UNKNOWN_VARIANCE_FRACTION,
+        gt=0,
+        le=1,
+        description="a cell whose GP variance exceeds this fraction of the prior variance k(x*, x*) is "
+        "unknown in every export (-1 in the OccupancyGrid, grey 205 in the PGM) whatever its p(occ): no "
+        "data constrained it. 0.9 = known once the data explain a tenth of the prior variance; it separates "
+        "the cells a beam touched from the others best over the demo's and Intel's maps before and after "
+        "loop closure (README, 'Unknown space'): lower values turn observed cells whose poses are uncertain "
+        "unknown, higher ones widen the band of extrapolated cells around the data",
+    )
 
 
 class Config(BaseModel):

@@ -1,41 +1,97 @@
-"""Everything a run writes about its maps (SPEC section 4, ``DIR/maps``), from rendered layers."""
+"""Everything a run writes about its maps (SPEC section 4, ``DIR/maps``), from rendered layers.
+
+Every export carries one classification (:class:`mapping.exports.Classification`, thresholds from
+``mapping`` and ``export.unknown_variance_fraction``): the map_server PGM and the bag's OccupancyGrid hold
+the same int8 values, computed once here.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from datasets.ros.maps import Raster, write_map_bag
+from datasets.types import Trajectory
 from mapping.config import MappingConfig
-from mapping.exports import MapLayers, write_layers_npz, write_map_server
-from mapping.figures import plot_before_after_maps, plot_classified, plot_layer
+from mapping.exports import Classification, MapExportError, MapLayers, write_layers_npz, write_map_server
+from mapping.figures import plot_before_after_maps, plot_classified, plot_difference, plot_layer
+from mapping.frontier import ExplorationSettings, plan_exploration
+from mapping.train import GPParams
 from pipeline.config import ExportConfig
+
+#: The trajectory the maps bag's ``/tf`` (``map -> base_link``) follows, when the run has it.
+TF_TRAJECTORY = "after"
+
+
+def classify_layers(
+    layers: MapLayers, params: GPParams, cfg: MappingConfig, export: ExportConfig
+) -> MapLayers:
+    """``layers`` with the run's :class:`~mapping.exports.Classification` attached."""
+    prior = np.full(layers.shape, params.prior_variance, dtype=np.float32)
+    rule = Classification(prior, export.unknown_variance_fraction, cfg.occupied_threshold, cfg.free_threshold)
+    return dataclasses.replace(layers, classification=rule)
+
+
+def map_metadata(layers: MapLayers) -> dict[str, Any]:
+    """The scales and thresholds behind a classified map's grids: the extra keys of its map_server YAML and
+    the JSON of its ``/NAME/metadata`` message. ``variance_full_scale`` is the variance that the bag's
+    ``/NAME/variance`` grid shows as 100 (the prior)."""
+    if layers.classification is None:
+        raise MapExportError("map_metadata: the map has no classification")
+    keys = layers.classification.yaml_keys()
+    keys["variance_full_scale"] = float(np.nanmax(layers.classification.prior_variance))
+    return keys
 
 
 def write_map_folder(
-    folder: Path, layers: MapLayers, cfg: MappingConfig, export: ExportConfig, title: str, path_xy_m: NDArray
+    folder: Path,
+    layers: MapLayers,
+    cfg: MappingConfig,
+    export: ExportConfig,
+    title: str,
+    path_xy_m: NDArray,
+    ate_m: float | None = None,
 ) -> list[Path]:
-    """``occupancy.pgm`` + ``occupancy.yaml``, ``layers.npz`` and the PNGs of one map; returns the files."""
+    """``occupancy.pgm`` + ``occupancy.yaml``, ``layers.npz`` and the PNGs of one classified map; returns
+    the files."""
     folder.mkdir(parents=True, exist_ok=True)
     files = list(
         write_map_server(
             folder / "occupancy",
-            layers.probability,
+            layers.occupancy_values(),
             layers.resolution_m,
             layers.origin_xy_m,
-            cfg.occupied_threshold,
-            cfg.free_threshold,
+            map_metadata(layers),
         )
     )
     files.append(write_layers_npz(folder / "layers.npz", layers))
     if export.png:
+        unknown = layers.unknown
+        prior = layers.classification.prior_variance if layers.classification is not None else None
         files.append(
-            plot_layer(layers, "probability", folder / "occupancy.png", f"{title}: p(occupied)", path_xy_m)
+            plot_layer(
+                layers,
+                "probability",
+                folder / "occupancy.png",
+                f"{title}: p(occupied)",
+                path_xy_m,
+                unknown=unknown,
+                ate_m=ate_m,
+            )
         )
         files.append(
-            plot_layer(layers, "variance", folder / "variance.png", f"{title}: GP variance", path_xy_m)
+            plot_layer(
+                layers,
+                "variance",
+                folder / "variance.png",
+                f"{title}: GP variance",
+                path_xy_m,
+                prior_variance=prior,
+            )
         )
         files.append(
             plot_classified(
@@ -43,7 +99,9 @@ def write_map_folder(
                 folder / "classified.png",
                 cfg.occupied_threshold,
                 cfg.free_threshold,
-                f"{title}: occupied (black) / free (white) / unsure (grey)",
+                f"{title}: the planners' classification",
+                unknown=unknown,
+                ate_m=ate_m,
             )
         )
     return files
@@ -52,45 +110,95 @@ def write_map_folder(
 def write_maps(
     maps_dir: Path,
     maps: dict[str, MapLayers],
-    paths_xy_m: dict[str, NDArray],
-    closures_xy_m: NDArray,
+    trajectories: dict[str, Trajectory],
+    closures_xy_m: NDArray | None,
     cfg: MappingConfig,
     export: ExportConfig,
     stamp_ns: int,
-    variance_full_scale: float,
+    params: GPParams,
+    ate_m: dict[str, float | None] | None = None,
 ) -> list[Path]:
-    """Write ``maps/{name}/...`` for each map, ``maps/before_after.png`` and the maps bag."""
+    """Write ``maps/{name}/...`` for each map, ``maps/before_after.png``, ``maps/difference.png`` and the
+    maps bag.
+
+    ``trajectories`` holds each map's base poses (``frame_id`` "map", one per scan); the bag gets them as
+    ``/{name}/path``, the ``after`` one (else the only one) as ``/tf``, and ``closures_xy_m`` (C, 2, 2)
+    as ``/loop_closures`` unless it is None. With ``export.next_best_views`` > 0 each map's exploration
+    plan (:func:`mapping.frontier.plan_exploration`) adds the ``frontier`` and ``information`` layers to
+    its GridMap and its views as ``/{name}/next_best_views``. ``ate_m`` (by map name, when known) goes into
+    the figures' titles.
+    """
+    ate_m = ate_m or {}
+    maps = {name: classify_layers(layers, params, cfg, export) for name, layers in maps.items()}
+    plans = {}
+    if export.next_best_views > 0:
+        settings = ExplorationSettings.from_config(
+            cfg, export.unknown_variance_fraction, n_views=export.next_best_views
+        )
+        plans = {name: plan_exploration(layers, params, settings) for name, layers in maps.items()}
     files: list[Path] = []
     for name, layers in maps.items():
         title = f"{name} loop closure" if name in ("before", "after") else name
-        files += write_map_folder(maps_dir / name, layers, cfg, export, title, paths_xy_m[name])
+        files += write_map_folder(
+            maps_dir / name,
+            layers,
+            cfg,
+            export,
+            title,
+            trajectories[name].poses_xytheta[:, :2],
+            ate_m.get(name),
+        )
     if export.png and {"before", "after"} <= set(maps):
         files.append(
             plot_before_after_maps(
                 maps["before"],
                 maps["after"],
                 maps_dir / "before_after.png",
-                paths_xy_m["before"],
-                paths_xy_m["after"],
+                trajectories["before"].poses_xytheta[:, :2],
+                trajectories["after"].poses_xytheta[:, :2],
                 closures_xy_m,
+                ate_m=ate_m,
+            )
+        )
+        files.append(
+            plot_difference(
+                maps["before"],
+                maps["after"],
+                maps_dir / "difference.png",
+                path_after_xy_m=trajectories["after"].poses_xytheta[:, :2],
+                closures_xy_m=closures_xy_m,
+                ate_m=ate_m,
             )
         )
     bag = maps_dir / ("maps.mcap" if export.bag_format == "mcap" else "maps.bag")
     rasters = {
         name: Raster(
-            {"probability": m.probability, "mean": m.mean, "variance": m.variance},
+            {
+                "probability": m.probability,
+                "mean": m.mean,
+                "variance": m.variance,
+                "unknown": np.asarray(m.unknown, dtype=np.float32),
+                **(plans[name].layers() if name in plans else {}),
+            },
             m.resolution_m,
             m.origin_xy_m,
             m.frame_id,
         )
         for name, m in maps.items()
     }
-    write_map_bag(bag, rasters, stamp_ns, dict.fromkeys(maps, variance_full_scale))
+    metadata = {name: map_metadata(m) for name, m in maps.items()}
+    tf_name = TF_TRAJECTORY if TF_TRAJECTORY in trajectories else next(iter(trajectories), None)
+    write_map_bag(
+        bag,
+        rasters,
+        stamp_ns,
+        variance_full_scale={name: meta["variance_full_scale"] for name, meta in metadata.items()},
+        occupancy={name: m.occupancy_values() for name, m in maps.items()},
+        metadata=metadata,
+        paths=trajectories,
+        loop_closures_xy_m=closures_xy_m,
+        tf_trajectory=None if tf_name is None else trajectories[tf_name],
+        views_xytheta={name: plan.views_xytheta for name, plan in plans.items()},
+    )
     files.append(bag)
     return files
-
-
-def max_variance(maps: dict[str, MapLayers]) -> float:
-    """The largest finite variance of all maps (a common full scale for the variance grids)."""
-    values = [float(np.nanmax(m.variance)) for m in maps.values() if np.isfinite(m.variance).any()]
-    return max(values) if values else 1.0

@@ -52,6 +52,7 @@ from pipeline.errors import PipelineError, stage_boundary
 from pipeline.map_bounds import check_map_cells, parse_numbers
 from pipeline.map_exports import write_maps
 from pipeline.progress import Progress
+from pipeline.report import write_report
 from pipeline.run import StageTimer
 from pipeline.run_folder import (
     SUMMARY_NAME,
@@ -126,6 +127,11 @@ def poses_from_g2o(path: Path, run_poses: np.ndarray, keyframe_scans: np.ndarray
     return scan_poses_from_keyframes(graph.vertices_xytheta[order], keyframe_scans, run_poses)
 
 
+def default_remap_dir(run_dir: Path) -> Path:
+    """Where ``remap`` writes when no ``--out`` is given: ``RUN_DIR/remap``."""
+    return Path(run_dir) / "remap"
+
+
 def remap_run(
     run_dir: Path,
     poses: Path | None = None,
@@ -147,13 +153,16 @@ def remap_run(
     timer = StageTimer()
     run_dir = Path(run_dir)
     run_bounds = stored_bounds(read_summary(run_dir), run_dir)
-    out_dir = Path(out_dir) if out_dir is not None else run_dir / "remap"
+    out_dir = Path(out_dir) if out_dir is not None else default_remap_dir(run_dir)
     check_output_dir(out_dir, overwrite)
     overrides = {"mapping": {"resolution_m": resolution_m}, "scale": {"scheduler": scheduler}}
     config = load_config(run_dir / "config.yaml", overrides)
     cfg = config.mapping
     map_bounds = parse_bounds(bounds) or run_bounds
-    check_map_cells(map_bounds, cfg.resolution_m, config.scale.max_map_cells, f"{run_dir}: the remap")
+    given = [f"--resolution {cfg.resolution_m:g}"] if resolution_m is not None else []
+    given += [f"--bounds {bounds}"] if bounds is not None else []
+    what = f"{run_dir}: the remap" + (f" with {' and '.join(given)}" if given else "")
+    check_map_cells(map_bounds, cfg.resolution_m, config.scale.max_map_cells, what)
     with timer("read"), stage_boundary("reading", run_dir):
         stored = read_scans(run_dir / SCANS_FILE)
         scans = stored.scans
@@ -231,12 +240,12 @@ def remap_run(
             write_maps(
                 stage / "maps",
                 layers,
-                {MAP_NAME: new_poses[:, :2]},
-                np.zeros((0, 2, 2)),
+                {MAP_NAME: Trajectory(scans.stamps_ns, new_poses, "map")},
+                None,
                 cfg,
                 config.export,
                 int(scans.stamps_ns[-1]),
-                float(np.nanmax(layers[MAP_NAME].variance)),
+                params,
             )
         m = layers[MAP_NAME]
         summary = {
@@ -270,5 +279,7 @@ def remap_run(
             "map": f"{m.shape[1]} x {m.shape[0]} cells at {m.resolution_m} m ({cfg.mapper})",
             "wall time (s)": round(timer.total(), 2),
         }
+        if config.export.png:
+            write_report(stage, summary)
         write_summary(stage, summary)
     return summary

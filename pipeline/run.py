@@ -18,7 +18,7 @@ import numpy as np
 
 from datasets.errors import DatasetError
 from datasets.registry import guess_format, open_dataset
-from datasets.types import Recording
+from datasets.types import Recording, Trajectory
 from mapping.build import Bounds, MapBuilder, check_mapper
 from mapping.evaluation import ground_truth_auc
 from mapping.exports import MapLayers
@@ -28,8 +28,9 @@ from pipeline.artifacts import SCANS_FILE, TRAJECTORY_DIR, write_scans, write_tr
 from pipeline.config import Config, load_config, write_config
 from pipeline.errors import stage_boundary
 from pipeline.map_bounds import check_map_cells, scan_reach_m, union_bounds
-from pipeline.map_exports import max_variance, write_maps
+from pipeline.map_exports import write_maps
 from pipeline.progress import Progress
+from pipeline.report import write_report
 from pipeline.run_folder import check_output_dir, params_path, staged_run_folder, write_summary
 from pipeline.scale import engine_name, tile_engine
 from slam.metrics import ate_rmse
@@ -151,6 +152,11 @@ def tiles_summary(maps: dict[str, IncrementalMap], config: Config) -> dict[str, 
     }
 
 
+def default_run_dir(input_path: Path) -> Path:
+    """Where ``run`` writes when no ``--out`` is given: ``out/<input name without extensions>``."""
+    return Path("out") / Path(input_path).name.split(".")[0]
+
+
 def run_pipeline(
     input_path: Path,
     out_dir: Path | None = None,
@@ -165,7 +171,7 @@ def run_pipeline(
     timer = StageTimer()
     input_path = Path(input_path)
     config = config if config is not None else load_config()
-    out_dir = Path(out_dir) if out_dir is not None else Path("out") / input_path.name.split(".")[0]
+    out_dir = Path(out_dir) if out_dir is not None else default_run_dir(input_path)
     guess_format(input_path)  # a missing or unknown input fails before anything else
     check_output_dir(out_dir, overwrite)
     check_mapper(config.mapping.mapper)
@@ -192,9 +198,10 @@ def run_pipeline(
         files = write_trajectories(stage / TRAJECTORY_DIR, slam)
         # Map with the poses as the run folder stores them (TUM text), so that ``remap`` with the run's own
         # trajectory reproduces these maps bit for bit.
+        stored = {"before": read_tum(files["odometry"]), "after": read_tum(files["optimized"])}
         trajectories = {
-            "before": (read_tum(files["odometry"])[1], slam.cov_before_xytheta),
-            "after": (read_tum(files["optimized"])[1], slam.cov_after_xytheta),
+            "before": (stored["before"][1], slam.cov_before_xytheta),
+            "after": (stored["after"][1], slam.cov_after_xytheta),
         }
         with stage_boundary("mapping", input_path), tile_engine(config.scale) as renderer:
             layers, maps, params, bounds = build_maps(
@@ -202,22 +209,25 @@ def run_pipeline(
             )
         (stage / "maps").mkdir()
         params.save(params_path(stage / "maps"))
+        with timer("evaluate"):
+            metrics = evaluate_run(input_path, rec, slam, maps)
         with timer("export"), progress.stage("export", total=1) as bar:
             write_maps(
                 stage / "maps",
                 layers,
-                {k: v[0][:, :2] for k, v in trajectories.items()},
+                {k: Trajectory(stamps, poses, "map") for k, (stamps, poses) in stored.items()},
                 loop_closure_segments(slam),
                 config.mapping,
                 config.export,
                 int(rec.scans.stamps_ns[-1]),
-                max_variance(layers),
+                params,
+                ate_m=metrics["ate_rmse_m"],
             )
             bar.advance()
-        with timer("evaluate"):
-            metrics = evaluate_run(input_path, rec, slam, maps)
         summary = make_summary(input_path, rec, slam, config, layers["after"], bounds, params, metrics, timer)
         summary["tiles"] = tiles_summary(maps, config)
+        if config.export.png:
+            write_report(stage, summary)
         write_summary(stage, summary)
     return summary
 

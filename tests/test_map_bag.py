@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from datasets.ros.bag import open_bag
-from datasets.ros.maps import Raster, percent_int8, read_map_bag, write_map_bag
+from datasets.ros.maps import Raster, percent_int8, read_map_bag, trinary_occupancy, write_map_bag
 
 T0 = 1_700_000_000_123_456_789
 
@@ -39,7 +39,7 @@ def test_map_bag_round_trip(tmp_path: Path, name: str) -> None:
     back = read_map_bag(tmp_path / name)
     occ = back["/before/occupancy"]
     assert occ.shape == (5, 8) and occ.resolution_m == pytest.approx(0.2) and occ.origin_xy_m == (-1.0, 3.0)
-    np.testing.assert_array_equal(occ.layers["value"], percent_int8(raster.layers["probability"], 1.0))
+    np.testing.assert_array_equal(occ.layers["value"], trinary_occupancy(raster.layers["probability"]))
     assert occ.layers["value"][0, 0] == 100
     var = back["/after/variance"].layers["value"]
     assert var[0, 1] == -1  # NaN -> unknown

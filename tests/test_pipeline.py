@@ -89,18 +89,18 @@ def check_run_folder(out: Path) -> dict:
     for which in ("before", "after"):
         layers = read_layers_npz(out / "maps" / which / "layers.npz")
         assert layers.probability.dtype == np.float32 and layers.shape == tuple(summary["map"]["shape_hw"])
-        p, meta = read_map_server(out / "maps" / which / "occupancy.yaml")
+        values, meta = read_map_server(out / "maps" / which / "occupancy.yaml")
         assert (out / "maps" / which / meta["image"]).is_file()
-        assert p.shape == layers.shape and meta["resolution"] == layers.resolution_m
-        assert meta["origin"][:2] == list(layers.origin_xy_m)
-        np.testing.assert_allclose(p, layers.probability, atol=0.5 / 255 + 1e-6)
+        assert values.shape == layers.shape and meta["resolution"] == layers.resolution_m
+        assert meta["origin"][:2] == list(layers.origin_xy_m) and meta["mode"] == "trinary"
+        np.testing.assert_array_equal(values, layers.occupancy_values())  # as map_server loads it
         for kind in ("occupancy", "variance"):
             grid = rasters[f"/{which}/{kind}"]
             assert grid.shape == layers.shape
             assert grid.resolution_m == pytest.approx(layers.resolution_m)
             assert grid.origin_xy_m == pytest.approx(layers.origin_xy_m)
         occ = rasters[f"/{which}/occupancy"].layers["value"]
-        np.testing.assert_array_equal(occ, np.round(layers.probability.astype(np.float64) * 100))
+        np.testing.assert_array_equal(occ, values)  # the bag's OccupancyGrid is the PGM, cell for cell
         gm = rasters[f"/{which}/grid_map"]
         assert gm.shape == layers.shape and gm.origin_xy_m == pytest.approx(layers.origin_xy_m)
         for name in ("probability", "mean", "variance"):

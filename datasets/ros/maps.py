@@ -1,10 +1,13 @@
-"""Raster maps as ROS messages: ``nav_msgs/OccupancyGrid`` and ``grid_map_msgs/GridMap``, written and read.
+"""Raster maps as ROS messages: ``nav_msgs/OccupancyGrid`` and ``grid_map_msgs/GridMap``, written and read,
+and the run's trajectories, loop closures and TF beside them in the maps bag.
 
 Input rasters follow the project convention: (H, W) arrays, row 0 at the lowest y, column 0 at the lowest
 x, ``origin_xy_m`` the lower-left corner of cell (0, 0).
 
-- ``OccupancyGrid`` stores row-major from its origin cell, which is the same layout; values are int8
-  0..100, -1 unknown (NaN in the raster).
+- ``OccupancyGrid`` stores row-major from its origin cell, which is the same layout. A map's occupancy grid
+  is *trinary*, the classification a planner acts on (:func:`trinary_occupancy`): 100 occupied, 0 free,
+  -1 unknown -- the values nav2's ``map_server`` gives the map's ``trinary`` PGM, so that a planner reading
+  the bag and one reading the PGM see the same cells. The continuous p(occ) is a GridMap layer.
 - ``GridMap`` (ANYbotics grid_map) indexes cell (i, j) with i growing towards -x and j towards -y from the
   (max x, max y) corner, stores each layer as a column-major ``Float32MultiArray`` (dim 0 "column_index",
   dim 1 "row_index") and places the map by the pose of its centre. So the raster is flipped on both axes:
@@ -13,9 +16,11 @@ x, ``origin_xy_m`` the lower-left corner of cell (0, 0).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,10 +28,21 @@ from numpy.typing import NDArray
 from datasets.errors import DatasetError
 from datasets.ros.bag import open_bag
 from datasets.ros.typestores import header_msg, pose_msg, time_msg, yaw_of_quaternion
-from datasets.ros.writer import BagWriter, bag_kind_of_path, open_bag_writer
+from datasets.ros.writer import BagWriter, _transform_stamped, bag_kind_of_path, open_bag_writer
+from datasets.types import Trajectory
 
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 GRID_MAP = "grid_map_msgs/msg/GridMap"
+PATH = "nav_msgs/msg/Path"
+MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+STRING = "std_msgs/msg/String"
+POSE_ARRAY = "geometry_msgs/msg/PoseArray"
+#: nav_msgs/OccupancyGrid values (nav2_util/occ_grid_values.hpp: OCC_GRID_OCCUPIED, _FREE, _UNKNOWN).
+OCCUPIED_VALUE, FREE_VALUE, UNKNOWN_VALUE = 100, 0, -1
+LINE_LIST = 5  # visualization_msgs/Marker type
+MARKER_ADD = 0  # visualization_msgs/Marker action
+LOOP_CLOSURE_LINE_WIDTH_M = 0.1
 
 
 @dataclass(frozen=True)
@@ -50,6 +66,30 @@ def percent_int8(values: NDArray, full_scale: float) -> NDArray[np.int8]:
     ok = np.isfinite(v)
     scale = 100.0 / full_scale if full_scale > 0 else 0.0
     out[ok] = np.clip(np.round(v[ok] * scale), 0, 100).astype(np.int8)
+    return out
+
+
+def trinary_occupancy(
+    probability: NDArray,
+    unknown: NDArray | None = None,
+    occupied_threshold: float = 0.65,
+    free_threshold: float = 0.35,
+) -> NDArray[np.int8]:
+    """(H, W) int8 OccupancyGrid values of a p(occ) raster: 100 where ``p >= occupied_threshold``, 0 where
+    ``p <= free_threshold``, -1 (unknown) in between, where p is NaN and wherever the (H, W) bool mask
+    ``unknown`` is set (space no data constrained: it is never free nor occupied)."""
+    if not 0.0 < free_threshold < occupied_threshold < 1.0:
+        raise DatasetError(f"need 0 < free ({free_threshold}) < occupied ({occupied_threshold}) < 1")
+    p = np.asarray(probability, dtype=np.float64)
+    out = np.full(p.shape, UNKNOWN_VALUE, dtype=np.int8)
+    with np.errstate(invalid="ignore"):
+        out[p >= occupied_threshold] = OCCUPIED_VALUE
+        out[p <= free_threshold] = FREE_VALUE
+    if unknown is not None:
+        mask = np.asarray(unknown)
+        if mask.shape != p.shape:
+            raise DatasetError(f"unknown mask of shape {mask.shape} for a map of shape {p.shape}")
+        out[mask.astype(bool)] = UNKNOWN_VALUE
     return out
 
 
@@ -104,22 +144,102 @@ def grid_map_msg(w: BagWriter, raster: Raster, stamp_ns: int) -> object:
     return t[GRID_MAP](header=header, info=t["grid_map_msgs/msg/GridMapInfo"](**info), **common)
 
 
+def path_msg(w: BagWriter, trajectory: Trajectory, stamp_ns: int) -> object:
+    """A ``nav_msgs/Path`` of every pose of ``trajectory`` (each stamped with its own time), in its frame."""
+    t = w.types
+    poses = [
+        t["geometry_msgs/msg/PoseStamped"](
+            header=w.header(int(s), trajectory.frame_id, i), pose=pose_msg(w.typestore, *xyt)
+        )
+        for i, (s, xyt) in enumerate(zip(trajectory.stamps_ns, trajectory.poses_xytheta, strict=True))
+    ]
+    return t[PATH](header=w.header(stamp_ns, trajectory.frame_id), poses=poses)
+
+
+def pose_array_msg(w: BagWriter, poses_xytheta: NDArray, stamp_ns: int, frame_id: str = "map") -> object:
+    """A ``geometry_msgs/PoseArray`` of the (K, 3) planar poses (x, y in m, yaw in rad) in ``frame_id``."""
+    poses = [pose_msg(w.typestore, *map(float, xyt)) for xyt in np.asarray(poses_xytheta, np.float64)]
+    return w.types[POSE_ARRAY](header=w.header(stamp_ns, frame_id), poses=poses)
+
+
+def line_list_msg(
+    w: BagWriter, segments_xy_m: NDArray, stamp_ns: int, frame_id: str = "map", ns: str = "loop_closures"
+) -> object:
+    """A ``visualization_msgs/MarkerArray`` of one LINE_LIST marker: a line per (2, 2) segment of the
+    (C, 2, 2) ``segments_xy_m`` (m, in ``frame_id``); with no segment the marker has no points."""
+    t = w.types
+    segs = np.asarray(segments_xy_m, dtype=np.float64).reshape(-1, 2, 2)
+    points = [t["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0) for x, y in segs.reshape(-1, 2)]
+    fields: dict[str, Any] = dict(
+        header=w.header(stamp_ns, frame_id),
+        ns=ns,
+        id=0,
+        type=LINE_LIST,
+        action=MARKER_ADD,
+        pose=pose_msg(w.typestore, 0.0, 0.0, 0.0),
+        scale=t["geometry_msgs/msg/Vector3"](x=LOOP_CLOSURE_LINE_WIDTH_M, y=0.0, z=0.0),
+        color=t["std_msgs/msg/ColorRGBA"](r=0.9, g=0.1, b=0.1, a=1.0),
+        lifetime=t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
+        frame_locked=False,
+        points=points,
+        colors=[],
+        text="",
+        mesh_resource="",
+        mesh_use_embedded_materials=False,
+    )
+    if w.kind == "ros2":  # Humble's Marker adds a texture and an embedded mesh
+        empty = np.zeros(0, dtype=np.uint8)
+        fields.update(
+            texture_resource="",
+            texture=t["sensor_msgs/msg/CompressedImage"](header=w.header(0, ""), format="", data=empty),
+            uv_coordinates=[],
+            mesh_file=t["visualization_msgs/msg/MeshFile"](filename="", data=empty),
+        )
+    return t[MARKER_ARRAY](markers=[t["visualization_msgs/msg/Marker"](**fields)])
+
+
 def write_map_bag(
     path: Path,
     maps: Mapping[str, Raster],
     stamp_ns: int,
     variance_full_scale: Mapping[str, float] | None = None,
+    occupancy: Mapping[str, NDArray[np.int8]] | None = None,
+    metadata: Mapping[str, Mapping[str, Any]] | None = None,
+    paths: Mapping[str, Trajectory] | None = None,
+    loop_closures_xy_m: NDArray | None = None,
+    tf_trajectory: Trajectory | None = None,
+    tf_child_frame: str = "base_link",
+    views_xytheta: Mapping[str, NDArray] | None = None,
 ) -> dict[str, int]:
     """Write each named map of ``maps`` (e.g. ``{"before": ..., "after": ...}``) into a new bag.
 
-    A map needs the layers ``probability``, ``mean`` and ``variance``. Per map ``NAME``:
-    ``/NAME/occupancy`` (OccupancyGrid, 100 * p), ``/NAME/variance`` (OccupancyGrid, variance scaled so that
-    ``variance_full_scale[NAME]`` -- default the layer's maximum -- is 100) and ``/NAME/grid_map`` (GridMap
-    with every float layer). All latched. ROS1 ``.bag`` or ROS2 ``.mcap`` / folder by the path.
-    Returns messages per topic.
+    A map needs the layers ``probability``, ``mean`` and ``variance``. Per map ``NAME``, latched:
+
+    - ``/NAME/occupancy``: OccupancyGrid, ``occupancy[NAME]`` (int8 100 / 0 / -1) or by default
+      :func:`trinary_occupancy` of the probability with its default thresholds and the raster's ``unknown``
+      layer (non-zero: unknown) if it has one;
+    - ``/NAME/variance``: OccupancyGrid, ``round(100 variance / variance_full_scale[NAME])`` (default full
+      scale: the layer's maximum) -- a picture; the exact variance is the GridMap's float layer;
+    - ``/NAME/grid_map``: GridMap with every float layer of the raster;
+    - ``/NAME/metadata``: ``std_msgs/String``, ``metadata[NAME]`` as JSON (the scales and thresholds behind
+      the grids), when given;
+    - ``/NAME/next_best_views``: ``geometry_msgs/PoseArray`` of the (K, 3) poses ``views_xytheta[NAME]``
+      (:mod:`mapping.frontier`), when given.
+
+    Then, when given: ``/NAME/path`` (``nav_msgs/Path``, latched) per trajectory of ``paths``;
+    ``/loop_closures`` (``visualization_msgs/MarkerArray``, latched: one LINE_LIST, a line per (2, 2)
+    segment of the (C, 2, 2) ``loop_closures_xy_m``, in the frame of the first map); ``/tf``
+    (``tf2_msgs/TFMessage``): one transform ``tf_trajectory.frame_id -> tf_child_frame`` per pose, at the
+    pose's stamp. ROS1 ``.bag`` or ROS2 ``.mcap`` / folder by the path. Returns messages per topic.
     """
     variance_full_scale = dict(variance_full_scale or {})
+    occupancy = dict(occupancy or {})
+    metadata = dict(metadata or {})
     with open_bag_writer(path) as w:
+        if tf_trajectory is not None:
+            for s, xyt in zip(tf_trajectory.stamps_ns, tf_trajectory.poses_xytheta, strict=True):
+                tf = _transform_stamped(w, int(s), tf_trajectory.frame_id, tf_child_frame, xyt)
+                w.write("/tf", TF_MESSAGE, int(s), w.types[TF_MESSAGE](transforms=[tf]))
         for name, raster in maps.items():
             missing = {"probability", "mean", "variance"} - set(raster.layers)
             if missing:
@@ -127,11 +247,28 @@ def write_map_bag(
             variance = np.asarray(raster.layers["variance"], np.float64)
             finite = variance[np.isfinite(variance)]
             full = variance_full_scale.get(name, float(finite.max()) if finite.size else 1.0)
-            occ = occupancy_grid_msg(w, percent_int8(raster.layers["probability"], 1.0), raster, stamp_ns)
+            values = occupancy.get(name)
+            if values is None:
+                values = trinary_occupancy(raster.layers["probability"], raster.layers.get("unknown"))
+            elif np.shape(values) != raster.shape:
+                raise DatasetError(f"{path}: map '{name}': occupancy of shape {np.shape(values)}")
+            occ = occupancy_grid_msg(w, np.asarray(values, np.int8), raster, stamp_ns)
             var = occupancy_grid_msg(w, percent_int8(variance, full), raster, stamp_ns)
             w.write(f"/{name}/occupancy", OCCUPANCY_GRID, stamp_ns, occ, latching=True)
             w.write(f"/{name}/variance", OCCUPANCY_GRID, stamp_ns, var, latching=True)
             w.write(f"/{name}/grid_map", GRID_MAP, stamp_ns, grid_map_msg(w, raster, stamp_ns), latching=True)
+            if name in metadata:
+                text = json.dumps(dict(metadata[name]), sort_keys=True)
+                w.write(f"/{name}/metadata", STRING, stamp_ns, w.types[STRING](data=text), latching=True)
+            if views_xytheta is not None and name in views_xytheta:
+                views = pose_array_msg(w, views_xytheta[name], stamp_ns, raster.frame_id)
+                w.write(f"/{name}/next_best_views", POSE_ARRAY, stamp_ns, views, latching=True)
+        for name, trajectory in (paths or {}).items():
+            w.write(f"/{name}/path", PATH, stamp_ns, path_msg(w, trajectory, stamp_ns), latching=True)
+        if loop_closures_xy_m is not None:
+            frame = next(iter(maps.values())).frame_id if maps else "map"
+            markers = line_list_msg(w, loop_closures_xy_m, stamp_ns, frame)
+            w.write("/loop_closures", MARKER_ARRAY, stamp_ns, markers, latching=True)
         return dict(w.counts)
 
 
