@@ -27,8 +27,44 @@ Gaussian-process occupancy maps with variance (O'Callaghan & Ramos, IJRR 2012) f
 logs, before and after loop closure. With no command, runs the demo on a simulated loop world."""
 
 
+class _VersionAction(argparse.Action):
+    """``--version``: print ``gpom X.Y.Z`` on stdout and exit 0 (the version is looked up only when asked)."""
+
+    def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS, help: str | None = None):
+        super().__init__(option_strings, dest=dest, default=argparse.SUPPRESS, nargs=0, help=help)
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: object,
+        option_string: str | None = None,
+    ) -> None:
+        from pipeline.commands import version_line
+
+        sys.stdout.write(version_line() + "\n")
+        parser.exit()
+
+
+def _quiet_option() -> argparse.ArgumentParser:
+    """``-q`` for every command, so that it may also follow the command (``run.py run X -q``); absent there,
+    it keeps the value given before the command."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help="no progress bars")
+    return p
+
+
 def _add_json(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout and nothing else")
+
+
+def _add_rerun(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--rerun",
+        type=Path,
+        metavar="FILE.rrd",
+        help="also write a Rerun recording of the finished run folder to FILE.rrd (open it: rerun FILE.rrd)",
+    )
 
 
 def _add_scheduler(p: argparse.ArgumentParser) -> None:
@@ -44,17 +80,23 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python run.py", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    parser.add_argument(
+        "-q", "--quiet", action="store_true", help="no progress bars (also accepted after the command)"
+    )
+    parser.add_argument("--version", action=_VersionAction, help="print the version (gpom X.Y.Z) and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    quiet = [_quiet_option()]
 
-    p = sub.add_parser("demo", help="simulate the loop world, run the full pipeline on it, print a summary")
+    p = sub.add_parser(
+        "demo", parents=quiet, help="simulate the loop world, run the full pipeline on it, print a summary"
+    )
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="run folder (default: out/demo)")
     p.add_argument("--seed", type=int, default=0, help="simulation seed (default: 0)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
     _add_scheduler(p)
     _add_json(p)
 
-    p = sub.add_parser("run", help="full pipeline on a ROS1/ROS2 bag or a CARMEN log")
+    p = sub.add_parser("run", parents=quiet, help="full pipeline on a ROS1/ROS2 bag or a CARMEN log")
     p.add_argument("input", type=Path, help="ROS1 .bag, ROS2 bag (folder, .mcap, .db3), CARMEN log")
     p.add_argument("--out", type=Path, help="run folder (default: out/<input name>)")
     p.add_argument("--config", type=Path, help="YAML configuration (default: pipeline/default.yaml)")
@@ -65,38 +107,55 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--odom-topic", help="nav_msgs/Odometry topic (default: auto-detect)")
     p.add_argument("--resolution", type=float, help="map cell size in metres")
     p.add_argument("--mapper", choices=["gppol", "gpfol"], help="GP with uncertain (gppol) or exact inputs")
+    p.add_argument(
+        "--bag-format",
+        choices=["mcap", "bag"],
+        help="maps bag: ROS2 .mcap or ROS1 .bag (default: the configuration's export.bag_format)",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
+    _add_rerun(p)
     _add_scheduler(p)
     _add_json(p)
 
-    p = sub.add_parser("remap", help="new maps from a run folder with other poses, without the bag")
+    p = sub.add_parser(
+        "remap", parents=quiet, help="new maps from a run folder with other poses, without the bag"
+    )
     p.add_argument("run_dir", type=Path, help="a run folder written by 'run' or 'demo'")
     p.add_argument("--poses", type=Path, help="trajectory (.g2o or .tum) to map with")
     p.add_argument("--covariances", type=Path, help="covariances .npz (keys as trajectory/covariances.npz)")
     p.add_argument("--resolution", type=float, help="map cell size in metres")
-    p.add_argument("--bounds", help="XMIN,YMIN,XMAX,YMAX in metres (default: from the data)")
+    p.add_argument(
+        "--bounds",
+        help="XMIN,YMIN,XMAX,YMAX in metres (default: the run's map bounds); a negative XMIN needs the '=' "
+        "form, --bounds=-10,-5,30,20",
+    )
     p.add_argument("--out", type=Path, help="output folder (default: RUN_DIR/remap)")
     p.add_argument(
         "--recompute", action="store_true", help="render even when nothing changed (default: copy the map)"
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    _add_rerun(p)
     _add_scheduler(p)
     _add_json(p)
 
-    p = sub.add_parser("simulate", help="write a simulated run as a bag plus its ground-truth raster")
+    p = sub.add_parser(
+        "simulate", parents=quiet, help="write a simulated run as a bag plus its ground-truth raster"
+    )
     p.add_argument("world", choices=["street", "two-platform", "loop"], help="simulated world")
     p.add_argument("--out", type=Path, required=True, help="bag path: .bag (ROS1), .mcap or a folder (ROS2)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
 
-    p = sub.add_parser("convert", help="CARMEN log (or any readable recording) to a ROS bag")
+    p = sub.add_parser("convert", parents=quiet, help="CARMEN log (or any readable recording) to a ROS bag")
     p.add_argument("input", type=Path, help="recording to read")
     p.add_argument("output", type=Path, help=".bag (ROS1), .mcap or a folder (ROS2)")
     p.add_argument("--scan-topic", help="scan topic of a bag input ('all': every one, 'none': odometry only)")
     p.add_argument("--odom-topic", help="odometry topic of the input, if a bag")
 
-    p = sub.add_parser("evaluate", help="map or SLAM metrics (SPEC section 6)")
+    p = sub.add_parser("evaluate", parents=quiet, help="map or SLAM metrics (SPEC section 6)")
     ev = p.add_subparsers(dest="target", metavar="TARGET", required=True)
-    q = ev.add_parser("map", help="AUC of GPPOL, GPFOL and the occupancy grid (ground truth or hold-out)")
+    q = ev.add_parser(
+        "map", parents=quiet, help="AUC of GPPOL, GPFOL and the occupancy grid (ground truth or hold-out)"
+    )
     q.add_argument("input", type=Path, help="a simulated bag (with INPUT.gt.npz) or a recording")
     q.add_argument("--seed", type=int, action="append", help="seed(s) of the hold-out split (default: 0-4)")
     q.add_argument("--config", type=Path, help="YAML configuration")
@@ -107,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="map from seeded noisy poses (GPPOL gets their covariance), score against the true ones",
     )
     _add_json(q)
-    q = ev.add_parser("slam", help="relations error and ATE of the SLAM trajectory")
+    q = ev.add_parser("slam", parents=quiet, help="relations error and ATE of the SLAM trajectory")
     q.add_argument("input", type=Path, help="recording with odometry and scans")
     g = q.add_mutually_exclusive_group(required=True)
     g.add_argument("--relations", type=Path, help="relations file: t1 t2 x y z roll pitch yaw")
@@ -115,7 +174,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--config", type=Path, help="YAML configuration")
     _add_json(q)
     q = ev.add_parser(
-        "suite", help="every recording of a data folder: SLAM metrics and map AUCs, one table (a row each)"
+        "suite",
+        parents=quiet,
+        help="every recording of a data folder: SLAM metrics and map AUCs, one table (a row each)",
     )
     q.add_argument(
         "--data", type=Path, metavar="DIR", help="data folder (default: ../shared/data beside the checkout)"
@@ -135,7 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_json(q)
 
-    p = sub.add_parser("bench", help="performance figures (SPEC section 7)")
+    p = sub.add_parser("bench", parents=quiet, help="performance figures (SPEC section 7)")
     _add_json(p)
     return parser
 

@@ -22,8 +22,11 @@ remap              ``pipeline.remap.remap_run``
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import sys
+import tomllib
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from pipeline.errors import stage_boundary
@@ -50,6 +53,27 @@ def dispatch(args: argparse.Namespace, emit_json: EmitJson) -> int:
     subject = next((str(v) for k in SUBJECT_ARGS if (v := getattr(args, k, None)) is not None), args.command)
     with stage_boundary(args.command, subject, name_known_errors=False):
         return handler(args, emit_json)
+
+
+def package_version() -> str:
+    """The version of gpom: ``project.version`` of the checkout's ``pyproject.toml`` (the project runs from
+    its checkout, whose file is the truth even when an old install left metadata behind), else the installed
+    distribution's metadata, else ``"unknown"``."""
+    pyproject = Path(__file__).resolve().parent.parent / "pyproject.toml"
+    try:
+        with open(pyproject, "rb") as f:
+            return str(tomllib.load(f)["project"]["version"])
+    except (OSError, tomllib.TOMLDecodeError, KeyError, TypeError):
+        pass
+    try:
+        return importlib.metadata.version("gpom")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def version_line() -> str:
+    """What ``run.py --version`` prints: ``gpom X.Y.Z``."""
+    return f"gpom {package_version()}"
 
 
 def _say(text: str) -> None:
@@ -119,34 +143,49 @@ def cmd_run(args: argparse.Namespace, emit_json: EmitJson) -> int:
             "input": {"scan_topic": args.scan_topic, "odom_topic": args.odom_topic},
             "mapping": {"resolution_m": args.resolution, "mapper": args.mapper},
             "scale": {"scheduler": args.scheduler},
+            "export": {"bag_format": args.bag_format},
         },
     )
+    from pipeline.run import default_run_dir
+
+    out_dir = args.out if args.out is not None else default_run_dir(args.input)
     result = run_pipeline(
         args.input,
-        args.out,
+        out_dir,
         config,
         overwrite=args.overwrite,
         progress=progress_for_terminal(args.quiet or args.json),
     )
+    _write_rerun(args, out_dir)
     return _report(result, args, emit_json, f"run {args.input}")
 
 
 def cmd_remap(args: argparse.Namespace, emit_json: EmitJson) -> int:
-    from pipeline.remap import remap_run
+    from pipeline.remap import default_remap_dir, remap_run
 
+    out_dir = args.out if args.out is not None else default_remap_dir(args.run_dir)
     result = remap_run(
         run_dir=args.run_dir,
         poses=args.poses,
         covariances=args.covariances,
         resolution_m=args.resolution,
         bounds=args.bounds,
-        out_dir=args.out,
+        out_dir=out_dir,
         overwrite=args.overwrite,
         recompute=args.recompute,
         progress=progress_for_terminal(args.quiet or args.json),
         scheduler=args.scheduler,
     )
+    _write_rerun(args, out_dir)
     return _report(result, args, emit_json, f"remap {args.run_dir}")
+
+
+def _write_rerun(args: argparse.Namespace, folder: Path) -> None:
+    """``--rerun FILE.rrd``: a Rerun recording of the finished run folder (:mod:`pipeline.viewer`)."""
+    if args.rerun is not None:
+        from pipeline.viewer import write_rerun
+
+        write_rerun(folder, args.rerun)
 
 
 def cmd_simulate(args: argparse.Namespace, emit_json: EmitJson) -> int:

@@ -30,9 +30,20 @@ def union_bounds(*bounds: Bounds) -> Bounds:
 
 
 def map_cells(bounds: Bounds, resolution_m: float) -> tuple[int, int]:
-    """(width, height) in cells of a map over ``bounds`` at ``resolution_m`` (Python ints: never overflow)."""
+    """(width, height) in cells of a map over ``bounds`` at ``resolution_m`` (Python ints: never overflow;
+    PipelineError when a side is beyond every float, e.g. at a subnormal resolution)."""
     xmin, ymin, xmax, ymax = bounds
-    return math.ceil((xmax - xmin) / resolution_m), math.ceil((ymax - ymin) / resolution_m)
+    sides = ((xmax - xmin) / resolution_m, (ymax - ymin) / resolution_m)
+    if not all(math.isfinite(v) for v in sides):
+        raise PipelineError(f"a map over {bounds} at {resolution_m:g} m has more cells than any float counts")
+    return math.ceil(sides[0]), math.ceil(sides[1])
+
+
+def _count_text(n: int) -> str:
+    """``n`` as it is when short, else ``1.23e+07`` (beyond the float range: a power of ten)."""
+    if n < 100_000:
+        return str(n)
+    return f"{n:.3g}" if n < 10**300 else f"~1e+{len(str(n)) - 1}"
 
 
 def check_map_cells(bounds: Bounds, resolution_m: float, max_cells: int, what: str) -> None:
@@ -43,9 +54,10 @@ def check_map_cells(bounds: Bounds, resolution_m: float, max_cells: int, what: s
     if width * height > max_cells:
         size_x, size_y = bounds[2] - bounds[0], bounds[3] - bounds[1]
         raise PipelineError(
-            f"{what}: {size_x:.4g} x {size_y:.4g} m at {resolution_m:g} m is {width} x {height} = "
-            f"{width * height:.3g} cells, above scale.max_map_cells = {max_cells:.3g} (choose a coarser "
-            "resolution or smaller bounds, or raise the limit in the configuration)"
+            f"{what}: {size_x:.4g} x {size_y:.4g} m at {resolution_m:g} m is {_count_text(width)} x "
+            f"{_count_text(height)} = {_count_text(width * height)} cells, above scale.max_map_cells = "
+            f"{max_cells:.3g} (choose a coarser resolution or smaller bounds, or raise the limit in the "
+            "configuration)"
         )
 
 

@@ -6,6 +6,9 @@
 - g2o: ``VERTEX_SE2 id x y theta`` and ``EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33`` (upper triangle
   of the information matrix in the measurement's child frame); loop closures are edges like the others.
   ``FIX id`` marks an anchored vertex (the prior).
+- Numbers are written as the shortest text that reads back bit for bit (Python's ``repr``, as exact as
+  ``%.17g``): g2o vertices and measurements and TUM positions round-trip exactly; a TUM yaw goes through its
+  quaternion and comes back within an ulp or two. (GTSAM's ``writeG2o`` keeps 6 significant digits.)
 - covariances ``.npz``: ``before`` / ``after`` (K, 3, 3) world-frame keyframe marginals, ``stamps_ns`` (K,)
   and the scan ``indices`` (K,) of the keyframes.
 

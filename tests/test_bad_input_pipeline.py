@@ -115,7 +115,8 @@ def test_the_run_bounds_are_checked_before_training(small_log, tmp_path, monkeyp
 
 def test_cli_remap_over_huge_bounds_is_one_line_before_reading(small_run, tmp_path) -> None:
     proc = _cli("remap", str(small_run), "--bounds=-1e6,-1e6,1e6,1e6", "--out", str(tmp_path / "m"))
-    _one_line_error(proc, r"the remap: 2e\+06 x 2e\+06 m at 0\.1 m is .* cells, above scale\.max_map_cells")
+    flag = r"the remap with --bounds -1e6,-1e6,1e6,1e6: "
+    _one_line_error(proc, flag + r"2e\+06 x 2e\+06 m at 0\.1 m is .* cells, above scale\.max_map_cells")
     assert not (tmp_path / "m").exists()
 
 
@@ -357,3 +358,14 @@ def test_an_interrupt_python_dropped_still_stops_the_run(tmp_path, monkeypatch, 
     from pipeline.run_folder import pending_interrupt
 
     assert pending_interrupt() is None  # main() leaves nothing pending behind it
+
+
+@pytest.mark.parametrize("resolution_m", [1e-300, 1e-320])
+def test_absurdly_fine_resolutions_are_one_line_errors(resolution_m: float) -> None:
+    """Cell counts beyond the float range (1e-300 m) and sides beyond it (a subnormal cell size) are known
+    errors, not OverflowErrors from formatting or rounding them."""
+    from pipeline.map_bounds import check_map_cells
+
+    with pytest.raises(PipelineError, match=r"cells") as info:
+        check_map_cells((0.0, 0.0, 100.0, 50.0), resolution_m, 50_000_000, "the map")
+    assert "\n" not in str(info.value) and len(str(info.value)) < 300

@@ -82,5 +82,111 @@ def test_readme_synopsis_lists_every_option_of_every_command() -> None:
         line = next((ln for ln in lines if ln.startswith(f"python run.py {name} ")), None)
         assert line is not None, f"README synopsis lacks '{name}'"
         documented = set(re.findall(r"--[a-z][a-z-]*", line))
+        # the global options (-q) are also accepted after every command: the first line documents them
         options = {s for a in sub._actions for s in a.option_strings if s.startswith("--") and s != "--help"}
+        options -= top
         assert options == documented, f"{name}: --help has {sorted(options)}, README {sorted(documented)}"
+
+
+def test_version_is_the_one_of_pyproject() -> None:
+    import tomllib
+
+    with open(REPO / "pyproject.toml", "rb") as f:
+        version = tomllib.load(f)["project"]["version"]
+    result = run_cli("--version")
+    assert result.returncode == 0, result.stderr
+    assert result.stdout == f"gpom {version}\n" and result.stderr == ""
+
+
+@pytest.mark.parametrize(
+    ("argv", "quiet"),
+    [
+        (["run", "x.bag"], False),
+        (["-q", "run", "x.bag"], True),
+        (["run", "x.bag", "-q"], True),
+        (["run", "--quiet", "x.bag", "--json"], True),
+        (["-q", "remap", "r"], True),
+        (["remap", "r", "-q"], True),
+        (["evaluate", "map", "x.clf", "-q"], True),
+        (["evaluate", "-q", "suite"], True),
+        (["convert", "a", "b", "-q"], True),
+        (["bench"], False),
+    ],
+)
+def test_quiet_before_or_after_the_command(argv: list[str], quiet: bool) -> None:
+    from run import build_parser
+
+    assert build_parser().parse_args(argv).quiet is quiet
+
+
+def test_run_bag_format_overrides_the_configuration(monkeypatch, tmp_path) -> None:
+    import pipeline.run
+    from pipeline.commands import dispatch
+    from run import build_parser
+
+    seen = {}
+
+    def fake_run_pipeline(input_path, out_dir, config, **kwargs):
+        seen["config"] = config
+        return {"table": {}}
+
+    monkeypatch.setattr(pipeline.run, "run_pipeline", fake_run_pipeline)
+    for argv, expected in (
+        (["--bag-format", "bag"], "bag"),
+        (["--bag-format", "mcap"], "mcap"),
+        ([], "mcap"),
+    ):
+        args = build_parser().parse_args(["run", str(tmp_path / "x.bag"), "--json", *argv])
+        assert dispatch(args, lambda _obj: None) == 0
+        assert seen["config"].export.bag_format == expected, argv
+    config = tmp_path / "ros1.yaml"
+    config.write_text("export: {bag_format: bag}\n")
+    args = build_parser().parse_args(["run", "x.bag", "--config", str(config), "--json"])
+    dispatch(args, lambda _obj: None)
+    assert seen["config"].export.bag_format == "bag"  # no flag: the file's value stands
+    result = run_cli("run", "x.bag", "--bag-format", "zip")
+    assert result.returncode == 2 and "--bag-format: invalid choice: 'zip'" in result.stderr
+
+
+def test_a_bad_bag_format_override_is_blamed_on_the_flag() -> None:
+    from datasets.errors import ConfigError
+    from pipeline.config import load_config
+
+    with pytest.raises(ConfigError, match=r"^--bag-format 'zip': invalid value for 'export.bag_format'"):
+        load_config(None, {"export": {"bag_format": "zip"}})
+
+
+@pytest.fixture
+def run_folder_stub(tmp_path):
+    """The two files ``remap`` reads before its size check: a run's summary (map bounds) and configuration."""
+    import json
+
+    from pipeline.config import load_config, write_config
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "summary.json").write_text(json.dumps({"map": {"bounds_xy_m": [-20.0, -8.0, 102.0, 44.0]}}))
+    write_config(load_config(), run / "config.yaml")
+    return run
+
+
+def test_remap_too_fine_resolution_names_the_flag(run_folder_stub, tmp_path) -> None:
+    out = tmp_path / "out"
+    result = run_cli("remap", str(run_folder_stub), "--resolution", "0.001", "--out", str(out), "-q")
+    assert result.returncode == 1, result.stderr
+    line = result.stderr.strip()
+    assert "\n" not in line and line.startswith(
+        f"error: {run_folder_stub}: the remap with --resolution 0.001: "
+    )
+    assert "above scale.max_map_cells" in line and not out.exists()
+    result = run_cli("remap", str(run_folder_stub), "--bounds=-2000,-2000,2000,2000", "--out", str(out))
+    assert result.returncode == 1 and "the remap with --bounds -2000,-2000,2000,2000:" in result.stderr
+
+
+@pytest.mark.parametrize("value", ["-1", "0", "nan"])
+def test_remap_bad_resolution_is_blamed_on_the_flag(run_folder_stub, tmp_path, value: str) -> None:
+    result = run_cli("remap", str(run_folder_stub), "--resolution", value, "--out", str(tmp_path / "o"))
+    assert result.returncode == 1, result.stderr
+    line = result.stderr.strip()
+    assert line.startswith(f"error: --resolution {float(value)}: invalid value for 'mapping.resolution_m'")
+    assert "\n" not in line and "config.yaml" not in line and "default.yaml" not in line

@@ -95,3 +95,41 @@ def test_covariance_archive_round_trip(tmp_path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["covariances.npz"]  # no temporary left behind
     with pytest.raises(TrajectoryFormatError, match="no such file"):
         load_covariances(tmp_path / "none.npz")
+
+
+def test_g2o_round_trip_is_bit_exact_for_random_poses(tmp_path) -> None:
+    """Every bit of every vertex and measurement survives the text: remap's 1 um pose tolerance is never
+    spent on our own files. Values span magnitudes from 1e-300 to 1e300, signs, -0.0 and subnormals."""
+    rng = np.random.default_rng(7)
+    n = 2000
+    scale = 10.0 ** rng.uniform(-300, 300, (n, 3))
+    poses = rng.choice([-1.0, 1.0], (n, 3)) * rng.random((n, 3)) * scale
+    poses[:, 2] = rng.uniform(-np.pi, np.pi, n)
+    poses[0] = [-0.0, 5e-324, np.nextafter(np.pi, 0.0)]
+    poses[1] = [np.finfo(float).max, -np.finfo(float).tiny, -np.pi]
+    cov = np.diag([0.01, 0.02, 0.003])
+    edges = [Edge("odometry", i, i + 1, poses[i + 1] - poses[i] * 0.5, cov) for i in range(50)]
+    path = tmp_path / "random.g2o"
+    write_g2o(path, poses, edges)
+    g = read_g2o(path)
+    assert g.vertices_xytheta.view(np.uint64).tolist() == poses.view(np.uint64).tolist()
+    for ours, theirs in zip(edges, g.edges, strict=True):
+        assert (
+            theirs.measurement_xytheta.view(np.uint64).tolist()
+            == ours.measurement_xytheta.view(np.uint64).tolist()
+        )
+    # 6 significant digits (GTSAM's writeG2o) would not do: the same poses differ after such a round trip
+    path.write_text("".join(f"VERTEX_SE2 {k} {x:.6g} {y:.6g} {t:.6g}\n" for k, (x, y, t) in enumerate(poses)))
+    assert not np.array_equal(read_g2o(path).vertices_xytheta, poses)
+
+
+def test_tum_positions_are_bit_exact_and_yaw_within_two_ulps(tmp_path) -> None:
+    rng = np.random.default_rng(8)
+    n = 2000
+    stamps = np.cumsum(rng.integers(1, 10**9, n)).astype(np.int64)
+    poses = np.column_stack([rng.normal(0, 1e3, n), rng.normal(0, 1e-3, n), rng.uniform(-np.pi, np.pi, n)])
+    write_tum(tmp_path / "t.tum", stamps, poses)
+    s2, p2 = read_tum(tmp_path / "t.tum")
+    np.testing.assert_array_equal(s2, stamps)
+    assert p2[:, :2].view(np.uint64).tolist() == poses[:, :2].view(np.uint64).tolist()
+    np.testing.assert_allclose(np.angle(np.exp(1j * (p2[:, 2] - poses[:, 2]))), 0.0, rtol=0, atol=2 * 4.5e-16)
