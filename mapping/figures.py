@@ -15,6 +15,7 @@ import textwrap
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -315,6 +316,18 @@ def _mark_prior(cax: Axes, cbar, prior_variance: float | NDArray) -> None:
         text.set_fontweight("bold")
 
 
+def _finish_map(canvas: Any, ax: Any, extent: Any, im: Any, label: str, legend: list, ncol: int) -> tuple:
+    """Axes in metres, the colour bar of ``im`` labelled ``label`` and the legend below (if any entries) of
+    a one-panel map figure; returns the colour bar's axes and the colour bar."""
+    _map_axes(ax, extent)
+    cax = canvas.colorbar_axes()
+    cbar = canvas.fig.colorbar(im, cax=cax, label=label)
+    cax.tick_params(labelsize=8)
+    if legend:
+        canvas.legend_below(legend, ncol)
+    return cax, cbar
+
+
 def layer_figure(
     layers: MapLayers,
     which: str,
@@ -368,14 +381,9 @@ def layer_figure(
         _unknown_overlay(ax, unknown, view, extent)
     if path_xy_m is not None and len(path_xy_m):
         ax.plot(path_xy_m[:, 0], path_xy_m[:, 1], "-", color="tab:red", lw=1.0, alpha=0.85)
-    _map_axes(ax, extent)
-    cax = canvas.colorbar_axes()
-    cbar = canvas.fig.colorbar(im, cax=cax, label=label)
-    cax.tick_params(labelsize=8)
+    cax, cbar = _finish_map(canvas, ax, extent, im, label, legend, ncol)
     if which == "variance" and prior_variance is not None:
         _mark_prior(cax, cbar, prior_variance)
-    if legend:
-        canvas.legend_below(legend, ncol)
     return canvas.fig
 
 
@@ -595,12 +603,7 @@ def difference_figure(
         ax.plot(path_after_xy_m[:, 0], path_after_xy_m[:, 1], "-", color="0.2", lw=0.9, alpha=0.7)
     if closures is not None:
         _draw_closures(ax, closures)
-    _map_axes(ax, extent)
-    cax = canvas.colorbar_axes()
-    canvas.fig.colorbar(im, cax=cax, label="p_after - p_before\n(red: more occupied after)")
-    cax.tick_params(labelsize=8)
-    if legend:
-        canvas.legend_below(legend, ncol)
+    _finish_map(canvas, ax, extent, im, "p_after - p_before\n(red: more occupied after)", legend, ncol)
     return canvas.fig
 
 

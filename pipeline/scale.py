@@ -29,8 +29,7 @@ import threading
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 
-from mapping.tiling import RenderJob, TileRenderer, TileResult, render_serial
-from mapping.tiling.render import render_tile
+from mapping.tiling import RenderJob, TileRenderer, TileResult, render_serial, render_tile
 from pipeline.errors import PipelineError
 from pipeline.scale_config import ScaleConfig
 
