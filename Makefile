@@ -31,7 +31,21 @@ $(STAMP): requirements.lock pyproject.toml
 	$(PY) -m pip install --quiet -r requirements.lock
 	@touch $(STAMP)
 
-env: system-deps $(STAMP)
+# numba's on-disk cache (__pycache__/*.nbi, *.nbc beside each compiled module), filled by the pipeline on a
+# short simulated run (pipeline/warmup.py) so that the first `make demo` does not compile: once after each
+# install, and again after an edit of the compiled modules or of the code that calls them (an unchanged
+# function loads from the cache, so a re-warm costs only the short run). A failed warm-up does not stop
+# `make test` (numba then compiles on first use); the next `make` tries again.
+WARM := $(VENV)/.numba-warm
+WARM_SOURCES := $(wildcard mapping/*.py mapping/tiling/*.py slam/*.py datasets/*.py datasets/ros/*.py \
+  datasets/simulation/*.py pipeline/*.py pipeline/default.yaml)
+
+$(WARM): $(STAMP) $(WARM_SOURCES)
+	@echo "compiling the numba cores once (pipeline/warmup.py)"
+	@if $(PY) -m pipeline.warmup; then touch $(WARM); \
+	  else echo "warm-up failed: numba will compile on first use"; fi
+
+env: system-deps $(STAMP) $(WARM)
 
 demo: env
 	$(PY) run.py demo
