@@ -47,8 +47,9 @@ $(WARM): $(STAMP) $(WARM_SOURCES)
 
 env: system-deps $(STAMP) $(WARM)
 
+# The demo's folder is its own output: a second `make demo` replaces it.
 demo: env
-	$(PY) run.py demo
+	$(PY) run.py demo --overwrite
 
 test: env
 	$(PY) -m pytest -q
