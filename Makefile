@@ -40,7 +40,13 @@ WARM := $(VENV)/.numba-warm
 WARM_SOURCES := $(wildcard mapping/*.py mapping/tiling/*.py slam/*.py datasets/*.py datasets/ros/*.py \
   datasets/simulation/*.py pipeline/*.py pipeline/default.yaml)
 
+# Numba keys a cached function on its own module's source only, so an edit of a function it inlines from
+# another module (e.g. mapping/index.py into mapping/core.py) would leave stale machine code: an edit of a
+# package's modules drops that package's cache first.
 $(WARM): $(STAMP) $(WARM_SOURCES)
+	@for pkg in mapping slam datasets; do \
+	  if echo " $? " | grep -q " $$pkg/"; then find $$pkg -name '*.nb[ic]' -path '*__pycache__*' -delete; fi; \
+	done
 	@echo "compiling the numba cores once (pipeline/warmup.py)"
 	@if $(PY) -m pipeline.warmup; then touch $(WARM); \
 	  else echo "warm-up failed: numba will compile on first use"; fi

@@ -22,7 +22,8 @@ Arguments are named tuples (:class:`LocalGP`, :class:`InputGaussians`, and the i
 
 Compiled code is cached on disk (``cache=True``). Numba's cache does not notice edits to compiled functions
 of OTHER modules that a cached function calls (e.g. :mod:`mapping.index` from :func:`predict_batch`): after
-editing ``mapping/index.py`` or ``mapping/raster.py``, delete ``mapping/__pycache__/*.nb[ic]``.
+editing ``mapping/index.py`` or ``mapping/raster.py``, delete ``mapping/__pycache__/*.nb[ic]`` (``make env``
+does so after an edit of any module of ``mapping/``).
 
 Kernel ids and packed parameters (see :meth:`mapping.kernels.Kernel.packed`):
 0 neural network (eq. 7): ``(sf2, 2 sigma_0^2, 2 sigma^2)``; 1 squared exponential: ``(sf2, 1/l^2)``;

@@ -546,7 +546,12 @@ def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, bu
             for iy in range(lo_y, hi_y + 1):
                 if inside and ix == qcx and iy == qcy:
                     continue
-                if _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]:
+                c = ix * ny + iy
+                # test the cell's list before calling: most cells of a wide square are empty
+                if (
+                    cell_start[c] < cell_start[c + 1]
+                    and _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]
+                ):
                     count = _segment_cell(
                         qx,
                         qy,
@@ -570,7 +575,10 @@ def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, bu
     while not rings.done:
         ix = rings.ix
         iy = rings.iy
-        if count < k or _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]:
+        c = ix * ny + iy
+        if cell_start[c] < cell_start[c + 1] and (
+            count < k or _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]
+        ):
             count = _segment_cell(
                 qx,
                 qy,
