@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import math
 import random
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
 from mapping.beams import Beams
+from mapping.exports import MapLayers
 from mapping.gpmap import GPOccupancyMap
 from mapping.metrics import roc_auc
 
@@ -177,3 +178,48 @@ def ground_truth_auc(
     ``occupancy`` (H, W) truthy where occupied, its lower-left corner at ``origin_xy_m``."""
     centres = raster_cell_centres(occupancy.shape, np.asarray(origin_xy_m, np.float64), resolution_m)
     return roc_auc(gp.query(centres, sort=False).probability, np.asarray(occupancy).astype(bool).ravel())
+
+
+def rendered_ground_truth_auc(
+    rendered: MapLayers,
+    occupancy: NDArray,
+    origin_xy_m: NDArray,
+    resolution_m: float,
+    query: Callable[[FloatArray], FloatArray],
+) -> float:
+    """:func:`ground_truth_auc` of a map already rendered: the raster's cells that are cells of ``rendered``
+    (same resolution and lattice, within its bounds) are scored on its float32 p(occ), the map as exported,
+    and only the others on ``query`` ((P, 2) points -> (P,) p(occ) of the same map), which is not called
+    when there are none."""
+    origin = np.asarray(origin_xy_m, np.float64)
+    centres = raster_cell_centres(occupancy.shape, origin, resolution_m)
+    probability = np.empty(centres.shape[0])
+    todo = np.ones(centres.shape[0], bool)
+    rows_cols = _cells_in(rendered, occupancy.shape, origin, resolution_m)
+    if rows_cols is not None:
+        inside, rows, cols = rows_cols
+        probability[inside] = rendered.probability[rows, cols]
+        todo[inside] = False
+    if todo.any():
+        probability[todo] = query(centres[todo])
+    return roc_auc(probability, np.asarray(occupancy).astype(bool).ravel())
+
+
+def _cells_in(
+    rendered: MapLayers, shape: tuple[int, int], origin_xy_m: FloatArray, resolution_m: float
+) -> tuple[NDArray[np.bool_], NDArray[np.int64], NDArray[np.int64]] | None:
+    """For the cells of a raster (``shape``, ``origin_xy_m``, ``resolution_m``), row-major: which are cells
+    of ``rendered`` (mask (H*W,)) and their rows and columns there; None when the two grids do not share a
+    lattice."""
+    if not math.isclose(rendered.resolution_m, resolution_m, rel_tol=1e-9):
+        return None
+    offset = (origin_xy_m - np.asarray(rendered.origin_xy_m, np.float64)) / resolution_m
+    whole = np.round(offset)
+    if np.any(np.abs(offset - whole) > 1e-6):
+        return None
+    h, w = shape
+    rows, cols = np.meshgrid(np.arange(h) + int(whole[1]), np.arange(w) + int(whole[0]), indexing="ij")
+    rows, cols = rows.ravel(), cols.ravel()
+    rh, rw = rendered.shape
+    inside = (rows >= 0) & (rows < rh) & (cols >= 0) & (cols < rw)
+    return inside, rows[inside], cols[inside]

@@ -11,7 +11,15 @@ from datasets.types import ScanSequence
 from mapping.build import Bounds
 from pipeline.errors import PipelineError
 
-__all__ = ["Bounds", "check_map_cells", "map_cells", "parse_numbers", "scan_reach_m", "union_bounds"]
+__all__ = [
+    "Bounds",
+    "check_map_cells",
+    "map_cells",
+    "parse_numbers",
+    "scan_reach_m",
+    "snap_to_lattice",
+    "union_bounds",
+]
 
 
 def parse_numbers(text: str, count: int) -> list[float] | None:
@@ -27,6 +35,25 @@ def union_bounds(*bounds: Bounds) -> Bounds:
     """The smallest box holding every box of ``bounds``."""
     b = np.asarray(bounds, dtype=np.float64)
     return float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())
+
+
+def snap_to_lattice(bounds: Bounds, resolution_m: float) -> Bounds:
+    """``bounds`` grown outward to the world lattice of cells of ``resolution_m`` (corners at integer
+    multiples of it): the grids of every run, and a ground-truth raster on the same lattice, then share their
+    cells (a map is scored on such a raster from the cells it rendered). Unchanged where the corners are not
+    finite or too large for the lattice to be represented (beyond 2^52 cells from the origin)."""
+    xmin, ymin, xmax, ymax = bounds
+    lo = np.floor(np.array([xmin, ymin]) / resolution_m)
+    hi = np.ceil(np.array([xmax, ymax]) / resolution_m)
+    corners = np.concatenate([lo, hi])
+    if not np.all(np.isfinite(corners)) or np.abs(corners).max() > 2**52:
+        return bounds
+    return (
+        float(lo[0] * resolution_m),
+        float(lo[1] * resolution_m),
+        float(hi[0] * resolution_m),
+        float(hi[1] * resolution_m),
+    )
 
 
 def map_cells(bounds: Bounds, resolution_m: float) -> tuple[int, int]:

@@ -20,14 +20,14 @@ from datasets.errors import DatasetError
 from datasets.registry import guess_format, open_dataset
 from datasets.types import Recording, Trajectory
 from mapping.build import Bounds, MapBuilder, check_mapper
-from mapping.evaluation import ground_truth_auc
+from mapping.evaluation import rendered_ground_truth_auc
 from mapping.exports import MapLayers
 from mapping.tiling import IncrementalMap, TileRenderer, render_serial
 from mapping.train import GPParams
 from pipeline.artifacts import SCANS_FILE, TRAJECTORY_DIR, write_scans, write_trajectories
 from pipeline.config import Config, load_config, write_config
 from pipeline.errors import stage_boundary
-from pipeline.map_bounds import check_map_cells, scan_reach_m, union_bounds
+from pipeline.map_bounds import check_map_cells, scan_reach_m, snap_to_lattice, union_bounds
 from pipeline.map_exports import write_maps
 from pipeline.progress import Progress
 from pipeline.report import write_report
@@ -92,7 +92,8 @@ def build_maps(
     The scans mapped are ``selected`` (default: selected by motion along the first trajectory,
     :meth:`MapBuilder.select_scans`), the same for every map. Hyperparameters are learnt once (on the first
     trajectory's beams) unless ``params`` is given; every map is rendered on the same grid (``bounds``:
-    default the union of the data bounds), tile by tile (:mod:`pipeline.scale`) with the engine ``renderer``.
+    default the union of the data bounds grown to the world lattice of cells, :func:`snap_to_lattice`),
+    tile by tile (:mod:`pipeline.scale`) with the engine ``renderer``.
     Returns the layers, the tiled maps (:class:`mapping.tiling.IncrementalMap`, ready for incremental
     updates), the parameters and the bounds.
     """
@@ -105,7 +106,8 @@ def build_maps(
         for name, (poses, _) in trajectories.items()
     }
     if bounds is None:
-        bounds = union_bounds(*(b.bounds_xy_m(MAP_MARGIN_M) for b in beams.values()))
+        data_bounds = union_bounds(*(b.bounds_xy_m(MAP_MARGIN_M) for b in beams.values()))
+        bounds = snap_to_lattice(data_bounds, cfg.resolution_m)
     check_map_cells(bounds, cfg.resolution_m, config.scale.max_map_cells, "the maps of the run")
     if params is None:
         with timer("train"), progress.stage("train GP", total=1) as bar:
@@ -210,7 +212,7 @@ def run_pipeline(
         (stage / "maps").mkdir()
         params.save(params_path(stage / "maps"))
         with timer("evaluate"):
-            metrics = evaluate_run(input_path, rec, slam, maps)
+            metrics = evaluate_run(input_path, rec, slam, maps, layers)
         with timer("export"), progress.stage("export", total=1) as bar:
             write_maps(
                 stage / "maps",
@@ -233,11 +235,15 @@ def run_pipeline(
 
 
 def evaluate_run(
-    input_path: Path, rec: Recording, slam: SlamResult, maps: dict[str, IncrementalMap]
+    input_path: Path,
+    rec: Recording,
+    slam: SlamResult,
+    maps: dict[str, IncrementalMap],
+    layers: dict[str, MapLayers],
 ) -> dict[str, Any]:
     """ATE before / after against the recording's reference poses, AUC before / after against a
-    ground-truth raster beside the input (simulated worlds, scored by the map of all the beams); None where
-    there is no reference."""
+    ground-truth raster beside the input (simulated worlds: the rendered ``layers`` where the raster's cells
+    are theirs, the GP map elsewhere); None where there is no reference."""
     metrics: dict[str, Any] = {"ate_rmse_m": None, "auc": None}
     if rec.reference is not None and len(rec.reference) == len(slam.stamps_ns):
         ref = rec.reference.poses_xytheta
@@ -251,8 +257,12 @@ def evaluate_run(
     if gt_path.is_file():
         gt = load_ground_truth(gt_path)
         metrics["auc"] = {
-            name: ground_truth_auc(
-                m.factory(m.beams, m.cov_xytheta), gt.occupancy, gt.origin_xy_m, gt.resolution_m
+            name: rendered_ground_truth_auc(
+                layers[name],
+                gt.occupancy,
+                gt.origin_xy_m,
+                gt.resolution_m,
+                lambda xy_m, m=m: m.factory(m.beams, m.cov_xytheta).query(xy_m, sort=False).probability,
             )
             for name, m in maps.items()
         }

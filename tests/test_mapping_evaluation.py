@@ -8,7 +8,15 @@ import random
 import numpy as np
 import pytest
 
-from mapping.evaluation import holdout_split, holdout_test_points, is_carmen_180, raster_cell_centres
+from mapping.evaluation import (
+    holdout_split,
+    holdout_test_points,
+    is_carmen_180,
+    raster_cell_centres,
+    rendered_ground_truth_auc,
+)
+from mapping.exports import MapLayers
+from mapping.metrics import roc_auc
 
 
 def test_split_is_deterministic_block_structured_and_disjoint() -> None:
@@ -83,3 +91,55 @@ def test_raster_cell_centres() -> None:
     np.testing.assert_allclose(c[0], [10.25, 20.25])
     np.testing.assert_allclose(c[4], [10.75, 20.75])  # row 1, column 1
     assert c[:, 0].max() == pytest.approx(11.25)
+
+
+def _field(xy: np.ndarray) -> np.ndarray:
+    """A smooth p(occ)-like field, distinct at every cell of the rasters below."""
+    return 0.5 + 0.4 * np.sin(1.3 * xy[:, 0] + 0.01) * np.cos(0.7 * xy[:, 1] - 0.2)
+
+
+def _rendered(origin: tuple[float, float], shape: tuple[int, int], res: float) -> MapLayers:
+    p = _field(raster_cell_centres(shape, np.asarray(origin), res)).reshape(shape).astype(np.float32)
+    return MapLayers(p, np.zeros_like(p), np.ones_like(p), res, origin)
+
+
+def test_rendered_ground_truth_auc_reads_shared_cells_and_queries_the_rest() -> None:
+    """A raster on the map's lattice, half inside it: the inside cells are read from the float32 layer, the
+    others queried (and only those); the AUC is the AUC of exactly those values."""
+    res = 0.1
+    occupancy = (np.arange(12 * 20).reshape(12, 20) % 7 == 0).astype(np.uint8)
+    gt_origin = np.array([1.0, -0.5])
+    rendered = _rendered((0.3, -1.2), (10, 15), res)  # covers GT columns 0..7, rows 0..2
+    asked: list[np.ndarray] = []
+
+    def query(xy: np.ndarray) -> np.ndarray:
+        asked.append(xy)
+        return _field(xy)
+
+    auc = rendered_ground_truth_auc(rendered, occupancy, gt_origin, res, query)
+    centres = raster_cell_centres(occupancy.shape, gt_origin, res)
+    inside = (centres[:, 0] < 0.3 + 15 * res) & (centres[:, 1] < -1.2 + 10 * res)
+    assert inside.sum() == 8 * 3
+    assert len(asked) == 1 and asked[0].shape == ((~inside).sum(), 2)
+    expected = _field(centres)
+    expected[inside] = expected[inside].astype(np.float32)
+    assert auc == roc_auc(expected, occupancy.astype(bool).ravel())
+
+
+def test_rendered_ground_truth_auc_off_the_lattice_queries_every_cell() -> None:
+    res = 0.1
+    occupancy = (np.arange(6 * 9).reshape(6, 9) % 4 == 0).astype(np.uint8)
+    gt_origin = np.array([0.0, 0.0])
+    rendered = _rendered((-0.55, -0.55), (30, 30), res)  # half a cell off the raster's lattice
+    auc = rendered_ground_truth_auc(rendered, occupancy, gt_origin, res, _field)
+    centres = raster_cell_centres(occupancy.shape, gt_origin, res)
+    assert auc == roc_auc(_field(centres), occupancy.astype(bool).ravel())
+    # a map covering the whole raster on its lattice: nothing is queried
+    on_lattice = _rendered((-0.5, -0.5), (30, 30), res)
+
+    def refuse(xy: np.ndarray) -> np.ndarray:
+        raise AssertionError("queried although every cell was rendered")
+
+    assert rendered_ground_truth_auc(on_lattice, occupancy, gt_origin, res, refuse) == roc_auc(
+        _field(centres).astype(np.float32), occupancy.astype(bool).ravel()
+    )

@@ -131,6 +131,36 @@ def test_loop_run_folder_is_complete(loop_run) -> None:
     assert not list(loop_run.parent.glob("*.partial-*"))
 
 
+def test_snap_to_lattice() -> None:
+    from pipeline.map_bounds import snap_to_lattice
+
+    b = snap_to_lattice((-20.885, -8.146, 101.846, 43.92), 0.1)
+    assert b[0] <= -20.885 and b[1] <= -8.146 and b[2] >= 101.846 and b[3] >= 43.92
+    assert [round(v / 0.1) * 0.1 for v in b] == pytest.approx(b, abs=1e-12)
+    assert b[2] - b[0] < 122.731 + 0.2 + 1e-9
+    assert snap_to_lattice(b, 0.1) == pytest.approx(b, abs=1e-12)
+    assert snap_to_lattice((0.0, 0.0, float("inf"), 1.0), 0.1) == (0.0, 0.0, float("inf"), 1.0)
+
+
+def test_loop_maps_share_the_ground_truth_lattice(loop_bag, loop_run) -> None:
+    """The maps lie on the world lattice of their resolution, as the simulated world's ground truth does, so
+    the run scores the cells it rendered: its AUC is the AUC of the GP map queried at the ground truth's
+    cells and stored as float32, as the layers are."""
+    from datasets.simulation import ground_truth_path, load_ground_truth
+    from mapping.evaluation import raster_cell_centres
+    from mapping.metrics import roc_auc
+    from pipeline.api import load_run
+
+    summary = json.loads((loop_run / "summary.json").read_text())
+    res = summary["map"]["resolution_m"]
+    cells = np.asarray(summary["map"]["origin_xy_m"]) / res
+    np.testing.assert_allclose(cells, np.round(cells), atol=1e-9)
+    gt = load_ground_truth(ground_truth_path(loop_bag))
+    centres = raster_cell_centres(gt.occupancy.shape, np.asarray(gt.origin_xy_m), gt.resolution_m)
+    p = load_run(loop_run).query(centres).probability.astype(np.float32)
+    assert summary["metrics"]["auc"]["after"] == roc_auc(p, gt.occupancy.astype(bool).ravel())
+
+
 def test_remap_with_own_trajectory_reproduces_after_map(loop_run) -> None:
     result = run_cli("remap", str(loop_run), "--recompute", "--json")
     assert result.returncode == 0, result.stderr
