@@ -75,6 +75,28 @@ def test_knn_is_exact(cell_m: float) -> None:
         assert len(set(f.tolist())) == 15  # a segment listed in several cells is counted once
 
 
+def test_knn_is_exact_in_dense_cells_with_warm_starts() -> None:
+    """Cells of thousands of beams (a robot's fans along a corridor) searched in render order, each search
+    warm-started from its neighbour's result: the dense-cell screening bound keeps every search exact."""
+    rng = np.random.default_rng(7)
+    n_scans, n_beams = 60, 181
+    poses = np.c_[np.linspace(0, 6, n_scans), rng.normal(0, 0.05, n_scans), rng.normal(0, 0.1, n_scans)]
+    angles = [np.linspace(-np.pi / 2, np.pi / 2, n_beams)] * n_scans
+    ranges = [rng.uniform(1.0, 4.0, n_beams) for _ in range(n_scans)]
+    beams = beams_from_scans(ranges, angles, 0.1, 8.0, poses, no_return_free_length_m=3.0, free_margin_m=0.1)
+    index = BeamIndex.build(beams, 0.5, 0.5)
+    assert np.diff(index.segment_index.cell_start).max() > 1000
+    pts, _, (h, w) = grid_centres((-0.5, -1.0, 6.5, 1.0), 0.05)
+    queries = pts[tile_order(int(h), int(w))][::3]
+    occ, free, t = index.gather(queries, 15, 15)
+    for q, f, tf in zip(queries, free, t, strict=True):
+        _, _, _, d_free = brute_neighbours(beams, q, 15, 15)
+        cx = index.seg_x[f] + tf * index.seg_dx[f]
+        cy = index.seg_y[f] + tf * index.seg_dy[f]
+        np.testing.assert_allclose(np.hypot(cx - q[0], cy - q[1]), d_free, rtol=0, atol=1e-12)
+        assert len(set(f.tolist())) == 15
+
+
 def test_knn_with_fewer_items_than_k_pads() -> None:
     beams = random_beams(2, n_scans=1, n_beams=5, no_return_every=100)  # beam 0 has no return
     assert beams.is_hit.sum() == 4 and len(beams) == 5
