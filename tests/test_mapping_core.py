@@ -88,7 +88,7 @@ def test_knn_is_exact_in_dense_cells_with_warm_starts() -> None:
     assert np.diff(index.segment_index.cell_start).max() > 1000
     pts, _, (h, w) = grid_centres((-0.5, -1.0, 6.5, 1.0), 0.05)
     queries = pts[tile_order(int(h), int(w))][::3]
-    occ, free, t = index.gather(queries, 15, 15)
+    _, free, t = index.gather(queries, 15, 15)
     for q, f, tf in zip(queries, free, t, strict=True):
         _, _, _, d_free = brute_neighbours(beams, q, 15, 15)
         cx = index.seg_x[f] + tf * index.seg_dx[f]
