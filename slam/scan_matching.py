@@ -221,8 +221,11 @@ class PointGrid:
         self._count = 0
         self._coarse: dict[int, NDArray[np.float32]] = {}
         self.free: NDArray[np.bool_] | None = None  # cells seen free by the map's beams (optional)
-        # row/column bounds [r0, r1) x [c0, c1) of the cells ever written, so a reset touches only those
+        # row/column bounds [r0, r1) x [c0, c1) of the cells ever written, so a reset touches only those and
+        # a pyramid reads only those (every cell with a score above 0 is inside: insert writes all scores)
         self._touched = np.array([shape[0], 0, shape[1], 0], dtype=np.int64)
+        # memory of the pyramids branch_and_bound_search builds of this grid, reused from one to the next
+        self._pyramid_buffer = np.empty(0, dtype=np.float32)
 
     def reset(self, origin_xy_m: FloatArray) -> None:
         """Empty the grid and move it to a new origin, reusing its memory (cheaper than a new grid)."""
@@ -452,34 +455,101 @@ def correlative_search(
 
 
 @nb.njit(cache=True)
-def _score_pyramid(score: NDArray[np.float32], r0: int, c0: int, h: int, w: int, depth: int):
-    """(depth + 1, h, w) max-pooled scores of the window ``score[r0:r0+h, c0:c0+w]`` (zero outside the grid):
-    level ``d`` holds at ``(y, x)`` the largest score of the cells ``[y, y + 2^d) x [x, x + 2^d)``."""
+def _max_pool(score: NDArray[np.float32], r0: int, c0: int, pool: int, h: int, w: int) -> NDArray[np.float32]:
+    """(h, w) maxima of the ``pool`` x ``pool`` blocks of ``score`` from cell ``(r0, c0)`` on: ``out[y, x]``
+    is the largest of the cells ``[r0 + y pool, r0 + (y + 1) pool) x [c0 + x pool, ...)``, 0 counting for
+    cells outside the grid (scores are >= 0)."""
     gh, gw = score.shape
-    out = np.zeros((depth + 1, h, w), dtype=np.float32)
+    out = np.zeros((h, w), dtype=np.float32)
     for y in range(h):
-        gy = r0 + y
-        if gy < 0 or gy >= gh:
-            continue
-        for x in range(w):
-            gx = c0 + x
-            if 0 <= gx < gw:
-                out[0, y, x] = score[gy, gx]
-    for d in range(1, depth + 1):
-        half = 1 << (d - 1)
-        for y in range(h):
-            y2 = y + half
+        for i in range(pool):
+            gy = r0 + y * pool + i
+            if gy < 0 or gy >= gh:
+                continue
             for x in range(w):
-                x2 = x + half
-                m = out[d - 1, y, x]
-                if x2 < w and out[d - 1, y, x2] > m:
-                    m = out[d - 1, y, x2]
-                if y2 < h:
-                    if out[d - 1, y2, x] > m:
-                        m = out[d - 1, y2, x]
-                    if x2 < w and out[d - 1, y2, x2] > m:
-                        m = out[d - 1, y2, x2]
-                out[d, y, x] = m
+                m = out[y, x]
+                for j in range(pool):
+                    gx = c0 + x * pool + j
+                    if 0 <= gx < gw and score[gy, gx] > m:
+                        m = score[gy, gx]
+                out[y, x] = m
+    return out
+
+
+# The pyramid's kernels only copy and take maxima of finite scores >= 0 (no -0.0): fastmath lets them
+# vectorise without changing a value.
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _max4_rows(
+    a0: NDArray[np.float32],
+    a1: NDArray[np.float32],
+    b0: NDArray[np.float32],
+    b1: NDArray[np.float32],
+    out: NDArray[np.float32],
+) -> None:
+    """``out[x] = max(a0[x], a1[x], b0[x], b1[x])`` over ``out``'s length (rows of equal length)."""
+    for x in range(out.shape[0]):
+        out[x] = max(max(a0[x], a1[x]), max(b0[x], b1[x]))
+
+
+@nb.njit(cache=True, fastmath=True, inline="always")
+def _max2_rows(a0: NDArray[np.float32], a1: NDArray[np.float32], out: NDArray[np.float32]) -> None:
+    """``out[x] = max(a0[x], a1[x])`` over ``out``'s length."""
+    for x in range(out.shape[0]):
+        out[x] = max(a0[x], a1[x])
+
+
+@nb.njit(cache=True, fastmath=True)
+def _score_pyramid(
+    score: NDArray[np.float32],
+    r0: int,
+    c0: int,
+    h: int,
+    w: int,
+    depth: int,
+    nz_r0: int,
+    nz_r1: int,
+    nz_c0: int,
+    nz_c1: int,
+    buffer: NDArray[np.float32],
+):
+    """(depth + 1, h, w) max-pooled scores of the window ``score[r0:r0+h, c0:c0+w]``, reading only the cells
+    ``[nz_r0, nz_r1) x [nz_c0, nz_c1)`` of ``score`` (the rest of it, and cells outside the grid, count as
+    0): level ``d`` holds at ``(y, x)`` the largest score of the cells ``[y, y + 2^d) x [x, x + 2^d)``.
+    Scores are >= 0, so a pool reaching past the window takes the max of the cells inside it. The result
+    is a view of the flat ``buffer`` when it is large enough (every cell is written), else a new array."""
+    gh, gw = score.shape
+    size = (depth + 1) * h * w
+    if buffer.shape[0] >= size:
+        out = buffer[:size].reshape((depth + 1, h, w))
+    else:
+        out = np.empty((depth + 1, h, w), dtype=np.float32)
+    ya = max(nz_r0, 0)
+    yb = min(nz_r1, gh)
+    xa = max(max(nz_c0, 0) - c0, 0)
+    xb = min(min(nz_c1, gw) - c0, w)
+    # one pass from the top row down, every level of a row at once: level d of row y needs level d - 1 of
+    # rows y and y + 2^(d-1), both done, and still in cache
+    for y in range(h - 1, -1, -1):
+        gy = r0 + y
+        row = out[0, y]
+        if gy < ya or gy >= yb or xa >= xb:
+            row[:] = 0.0
+        else:
+            row[:xa] = 0.0
+            row[xa:xb] = score[gy, c0 + xa : c0 + xb]
+            row[xb:] = 0.0
+        for d in range(1, depth + 1):
+            half = 1 << (d - 1)
+            xe = max(w - half, 0)
+            p0 = out[d - 1, y]
+            row = out[d, y]
+            if y + half < h:
+                p1 = out[d - 1, y + half]
+                _max4_rows(p0[:xe], p0[half:], p1[:xe], p1[half:], row[:xe])
+                _max2_rows(p0[xe:], p1[xe:], row[xe:])
+            else:
+                _max2_rows(p0[:xe], p0[half:], row[:xe])
+                row[xe:] = p0[xe:]
     return out
 
 
@@ -499,12 +569,15 @@ def _bnb(
     min_total: float,
     cost_lin: float,
     cost_ang: float,
+    row0: int = 0,
+    col0: int = 0,
 ):
     """Exact maximum of the summed score minus the motion cost ``cost_lin * (dx^2 + dy^2) + cost_ang *
     dtheta^2`` (offsets in cells and rad) over the translations ``+-n_lin`` cells and rotations
     ``ctheta + a * ang_step``, ``|a| <= n_ang``, by branch and bound (Hess et al., ICRA 2016, section V.C; a
     node's bound subtracts the least cost over its offsets). ``pyramid`` is :func:`_score_pyramid` of the
-    window whose lower-left cell is at ``(x0, y0)``. Returns ``(found, objective, x, y, theta, nodes,
+    part from cell ``(row0, col0)`` on of the window whose lower-left cell is at ``(x0, y0)`` (the window's
+    cells outside that part score 0). Returns ``(found, objective, x, y, theta, nodes,
     score)``; ``found`` is False when no objective exceeds ``min_total``."""
     depth = pyramid.shape[0] - 1
     h = pyramid.shape[1]
@@ -521,8 +594,10 @@ def _bnb(
         for k in range(p):
             qx = c * points[k, 0] - s * points[k, 1] + cx
             qy = s * points[k, 0] + c * points[k, 1] + cy
-            ixs[a, k] = math.floor((qx - x0) / res)
-            iys[a, k] = math.floor((qy - y0) / res)
+            # the cell in the window (the arithmetic of a whole-window pyramid, so the same cell), then its
+            # index in the stored part; a point outside that part scores 0, so skipping it changes no sum
+            ixs[a, k] = math.floor((qx - x0) / res) - col0
+            iys[a, k] = math.floor((qy - y0) / res) - row0
     # roots: every rotation x the top-level translation cells covering the window
     step = 1 << depth
     n_top = (2 * n_lin + 1 + step - 1) // step
@@ -636,14 +711,17 @@ def _bnb(
 
 @dataclass(frozen=True)
 class ScorePyramid:
-    """Max-pooled copies of a score grid for :func:`branch_and_bound_search`: ``levels[d]`` holds at cell
-    ``(y, x)`` the largest score of the cells ``[y, y + 2^d) x [x, x + 2^d)`` (``levels`` (D + 1, H, W)
-    float32). ``origin_xy_m`` is the lower-left corner of cell (0, 0); the window starts ``2^D`` cells before
-    the part it was built for, since a node's pool reaches that far below the cells its leaves use."""
+    """Max-pooled copies of a score grid for :func:`branch_and_bound_search`: level ``d`` holds at cell
+    ``(y, x)`` of a window the largest score of the cells ``[y, y + 2^d) x [x, x + 2^d)``. ``origin_xy_m`` is
+    the lower-left corner of the window's cell (0, 0); the window starts ``2^D`` cells before the part it
+    was built for, since a node's pool reaches that far below the cells its leaves use. ``levels``
+    (D + 1, h, w) float32 stores only the window's cells from ``offset_rc`` (row, column) on that can score
+    above 0 (those near a map point); every other cell of the window scores 0."""
 
     levels: NDArray[np.float32]
     origin_xy_m: FloatArray
     resolution_m: float
+    offset_rc: tuple[int, int] = (0, 0)
 
     @property
     def depth(self) -> int:
@@ -651,11 +729,18 @@ class ScorePyramid:
 
     @classmethod
     def of_grid(
-        cls, grid: PointGrid, depth: int, pool: int = 1, bounds_xy_m: FloatArray | None = None
+        cls,
+        grid: PointGrid,
+        depth: int,
+        pool: int = 1,
+        bounds_xy_m: FloatArray | None = None,
+        buffer: NDArray[np.float32] | None = None,
     ) -> ScorePyramid:
         """The pyramid of ``grid.score`` (max-pooled by ``pool`` cells first: a coarser, cheaper search
         whose optimum the refinement then sharpens), over the grid or the box ``bounds_xy_m``
-        ``(xmin, ymin, xmax, ymax)``; cells outside the grid score 0."""
+        ``(xmin, ymin, xmax, ymax)``; cells outside the grid score 0. ``buffer`` (flat float32): memory to
+        build the levels in when large enough (a pyramid used once, then discarded: no fresh pages to
+        fault in); the pyramid is then valid until the buffer's next use."""
         res = grid.resolution_m
         ox, oy = float(grid.origin_xy_m[0]), float(grid.origin_xy_m[1])
         gh, gw = grid.shape
@@ -667,17 +752,33 @@ class ScorePyramid:
             w = math.ceil((bounds_xy_m[2] - ox) / res) + 1 - c0
             h = math.ceil((bounds_xy_m[3] - oy) / res) + 1 - r0
         h, w = -(-h // pool) * pool, -(-w // pool) * pool
-        score = np.zeros((h, w), dtype=np.float32)  # the box, zero outside the grid
-        ys, xs = max(r0, 0), max(c0, 0)
-        ye, xe = min(r0 + h, gh), min(c0 + w, gw)
-        if ye > ys and xe > xs:
-            score[ys - r0 : ye - r0, xs - c0 : xe - c0] = grid.score[ys:ye, xs:xe]
-        if pool > 1:
-            score = score.reshape(h // pool, pool, w // pool, pool).max(axis=(1, 3))
         pad = 1 << depth
-        levels = _score_pyramid(score, -pad, -pad, score.shape[0] + pad, score.shape[1] + pad, depth)
+        # only the cells the grid ever wrote can score above 0: those within the box, in pooled cells
+        tr0, tr1, tc0, tc1 = (int(v) for v in grid._touched)
+        pr0, pr1 = max((tr0 - r0) // pool, 0), min(-(-(tr1 - r0) // pool), h // pool)
+        pc0, pc1 = max((tc0 - c0) // pool, 0), min(-(-(tc1 - c0) // pool), w // pool)
+        if pool == 1:
+            # read the grid in place: window cell (y, x) is grid cell (r0 - pad + y, c0 - pad + x)
+            src = grid.score
+            wr0, wc0 = r0 - pad, c0 - pad
+            nz = (r0 + pr0, r0 + pr1, c0 + pc0, c0 + pc1)
+        else:
+            # the pooled cells [pr0, pr1) x [pc0, pc1) of the box (zero outside the grid)
+            hs, ws = max(pr1 - pr0, 0), max(pc1 - pc0, 0)
+            src = _max_pool(grid.score, r0 + pr0 * pool, c0 + pc0 * pool, pool, hs, ws)
+            wr0, wc0 = -pad - pr0, -pad - pc0
+            nz = (0, hs, 0, ws)
+        # the window's part whose pools reach a readable cell: from 2^D - 1 cells before them
+        big_h, big_w = h // pool + pad, w // pool + pad
+        sr0, sr1 = max(nz[0] - wr0 - (pad - 1), 0), min(nz[1] - wr0, big_h)
+        sc0, sc1 = max(nz[2] - wc0 - (pad - 1), 0), min(nz[3] - wc0, big_w)
+        if sr1 <= sr0 or sc1 <= sc0:
+            sr0 = sr1 = sc0 = sc1 = 0
+        buf = np.empty(0, dtype=np.float32) if buffer is None else buffer
+        levels = _score_pyramid(src, wr0 + sr0, wc0 + sc0, sr1 - sr0, sc1 - sc0, depth, *nz, buf)
         cres = res * pool
-        return cls(levels, np.array([ox + c0 * res - pad * cres, oy + r0 * res - pad * cres]), cres)
+        origin = np.array([ox + c0 * res - pad * cres, oy + r0 * res - pad * cres])
+        return cls(levels, origin, cres, (sr0, sc0))
 
 
 def bnb_depth(window_xy_m: float, resolution_m: float) -> int:
@@ -731,7 +832,10 @@ def branch_and_bound_search(
         # the part of the grid any transformed point can reach
         reach = r_max + window_xy_m + 2 * res
         box = np.array([c[0] - reach, c[1] - reach, c[0] + reach, c[1] + reach])
-        pyramid = ScorePyramid.of_grid(grid, bnb_depth(window_xy_m, res), pool, box)
+        buf = grid._pyramid_buffer
+        pyramid = ScorePyramid.of_grid(grid, bnb_depth(window_xy_m, res), pool, box, buf)
+        if pyramid.levels.size > buf.size:  # built in new memory: the next search reuses it
+            grid._pyramid_buffer = pyramid.levels.reshape(-1)
     cost_lin = cost_ang = 0.0
     if prior_weight > 0 and prior_sigma_xy_m and prior_sigma_theta_rad:
         cost_lin = 0.5 * prior_weight * n * (res / prior_sigma_xy_m) ** 2
@@ -751,6 +855,8 @@ def branch_and_bound_search(
         min_score * n - 1e-9 if min_score > 0 else -np.inf,
         cost_lin,
         cost_ang,
+        pyramid.offset_rc[0],
+        pyramid.offset_rc[1],
     )
     if not found:
         return SearchResult(c.copy(), 0.0)
