@@ -239,6 +239,56 @@ def _insert(best_d2, best_id, best_t, count, k, d2, idx, t):
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
+def _rank_place(d2s, n, w, best_d2, best_id, idx):
+    """Write ``d2s[w]`` and ``idx`` at the rank of entry w among ``d2s[:n]`` (ties in entry order)."""
+    d = d2s[w]
+    r = 0
+    for v in range(n):
+        dv = d2s[v]
+        r += (dv < d) | ((dv == d) & (v < w))
+    best_d2[r] = d
+    best_id[r] = idx
+    return r
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _rank_sort(best_d2, best_id, best_t, m):
+    """Sort the m entries (d2, id, t) of the buffers by d2, stably (as inserting them one by one in their
+    order would): ranks first (branch-free), then the permutation in place, cycle by cycle; ids are
+    non-negative int32 values, the rank is kept above them meanwhile."""
+    low = (1 << 32) - 1
+    placed = 1 << 62
+    for w in range(m):
+        d = best_d2[w]
+        r = 0
+        for v in range(m):
+            dv = best_d2[v]
+            r += (dv < d) | ((dv == d) & (v < w))
+        best_id[w] |= r << 32
+    for p in range(m):
+        cur = best_id[p]
+        if cur >= placed:
+            continue
+        d = best_d2[p]
+        t = best_t[p]
+        while True:
+            r = cur >> 32
+            nd = best_d2[r]
+            nt = best_t[r]
+            nxt = best_id[r]
+            best_d2[r] = d
+            best_t[r] = t
+            best_id[r] = (cur & low) | placed
+            if r == p:
+                break
+            d = nd
+            t = nt
+            cur = nxt
+    for p in range(m):
+        best_id[p] &= low
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _listed(ids, count, i):
     for j in range(count):
         if ids[j] == i:
@@ -376,11 +426,25 @@ def knn_points(qx, qy, points, k, best_d2, best_id, best_t, warm, n_warm, buf):
     pts = points.xy
     if k == 0 or pts.shape[0] == 0:
         return 0
-    for w in range(n_warm):
-        i = warm[w]
-        dx = pts[i, 0] - qx
-        dy = pts[i, 1] - qy
-        count = _insert(best_d2, best_id, best_t, count, k, dx * dx + dy * dy, i, 0.0)
+    if n_warm <= k:
+        # the warm candidates in order of distance (stably, as inserting them one by one would): by rank,
+        # with their distances in ``best_t`` meanwhile (branch-free, unlike insertion)
+        for w in range(n_warm):
+            i = warm[w]
+            dx = pts[i, 0] - qx
+            dy = pts[i, 1] - qy
+            best_t[w] = dx * dx + dy * dy
+        for w in range(n_warm):
+            _rank_place(best_t, n_warm, w, best_d2, best_id, warm[w])
+        count = n_warm
+        for w in range(n_warm):
+            best_t[w] = 0.0
+    else:
+        for w in range(n_warm):
+            i = warm[w]
+            dx = pts[i, 0] - qx
+            dy = pts[i, 1] - qy
+            count = _insert(best_d2, best_id, best_t, count, k, dx * dx + dy * dy, i, 0.0)
     cell_start = points.index.cell_start
     grid = points.index.grid
     cell = grid.cell
@@ -388,7 +452,9 @@ def knn_points(qx, qy, points, k, best_d2, best_id, best_t, warm, n_warm, buf):
     gx = (qx - grid.x0) / cell
     gy = (qy - grid.y0) / cell
     if count == k:
-        # warm start: every better point lies within the current k-th distance; scan that square of cells
+        # warm start: every better point lies within the current k-th distance; scan that square of cells.
+        # A point is listed in one cell only, so only the warm points can be offered twice: they are masked
+        # out of their cell's distances (a warm point no longer listed is beyond the k-th distance anyway).
         lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, grid.nx, ny)
         for ix in range(lo_x, hi_x + 1):
             for iy in range(lo_y, hi_y + 1):
@@ -398,10 +464,16 @@ def knn_points(qx, qy, points, k, best_d2, best_id, best_t, warm, n_warm, buf):
                     end = cell_start[c + 1]
                     if end > start:
                         _cell_point_d2(qx, qy, pts, start, end, buf)
+                        for w in range(n_warm):
+                            j = warm[w] - start
+                            if 0 <= j < end - start:
+                                buf[j] = np.inf
+                        kth = best_d2[k - 1]
                         for i in range(start, end):
                             d2 = buf[i - start]
-                            if d2 < best_d2[k - 1] and not _listed(best_id, count, i):
+                            if d2 < kth:
                                 count = _insert(best_d2, best_id, best_t, count, k, d2, i, 0.0)
+                                kth = best_d2[k - 1]
         return count
     rings = rings_start(grid, gx, gy)
     while not rings.done:
@@ -445,16 +517,36 @@ def _segment_cell(
     cell_lim2 = np.inf
     n = end - start
     if n > 4 * k and lim2 < np.inf:
-        # A dense cell: halve the screening radius while k of its segments (distinct: a segment is listed
-        # once per cell) still screen within it; then the k-th distance is at most that radius plus the
-        # float32 error (0.1 mm), and a segment screening beyond it plus another 0.1 mm cannot be among the
-        # k nearest. Fewer candidates reach the exact check below; the result is unchanged.
-        within2 = np.float32(lim2 * 0.25)
-        while _count_within(buf, n, within2) >= k:
-            r = math.sqrt(within2) + 2e-4
-            cell_lim2 = r * r
-            within2 = np.float32(within2 * 0.25)
+        cell_lim2 = _dense_cell_limit(buf, n, lim2, k)
         lim2 = min(lim2, cell_lim2)
+    return _offer_screened(
+        qx, qy, seg, items, start, end, k, best_d2, best_id, best_t, buf, count, check_dup, lim2, cell_lim2
+    )
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _dense_cell_limit(buf, n, lim2, k):
+    """A screening limit for a dense cell whose ``n`` float32 squared distances are in ``buf``, from the
+    limit ``lim2``: halve the radius while k of its segments (distinct: a segment is listed once per cell)
+    still screen within it; the k-th distance is then at most that radius plus the float32 error (0.1 mm),
+    and a segment screening beyond it plus another 0.1 mm cannot be among the k nearest (infinity when the
+    first halving already keeps fewer than k). The halving stops at 0.1 mm: below it the limit no longer
+    tightens, and k segments at distance 0 (a query at a scan's origin) would keep it halving for ever."""
+    cell_lim2 = np.inf
+    within2 = np.float32(lim2 * 0.25)
+    while within2 >= 1e-8 and _count_within(buf, n, within2) >= k:
+        r = math.sqrt(within2) + 2e-4
+        cell_lim2 = r * r
+        within2 = np.float32(within2 * 0.25)
+    return cell_lim2
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _offer_screened(
+    qx, qy, seg, items, start, end, k, best_d2, best_id, best_t, buf, count, check_dup, lim2, cell_lim2
+):
+    """Offer the entries ``start:end`` whose screened distance (``buf``) is within ``lim2`` to the top-k
+    buffers, exactly (float64); the limit follows the k-th distance, capped at ``cell_lim2``."""
     for e in range(start, end):
         if buf[e - start] > lim2:
             continue
@@ -522,14 +614,6 @@ def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, bu
     if k == 0 or segments.index.items.shape[0] == 0:
         return 0
     seg = segments.seg
-    for w in range(n_warm):
-        i = warm[w]
-        rx = qx - seg[i, 0]
-        ry = qy - seg[i, 1]
-        t = min(max((rx * seg[i, 2] + ry * seg[i, 3]) * seg[i, 4], 0.0), 1.0)
-        ex = rx - t * seg[i, 2]
-        ey = ry - t * seg[i, 3]
-        count = _insert(best_d2, best_id, best_t, count, k, ex * ex + ey * ey, i, t)
     entries = segments.entries
     cell_start = segments.index.cell_start
     items = segments.index.items
@@ -539,60 +623,118 @@ def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, bu
     ny = grid.ny
     gx = (qx - grid.x0) / cell
     gy = (qy - grid.y0) / cell
-    if count == k:  # warm start: scan the square of cells within the current k-th distance
-        # the query's own cell first: in dense areas it holds the nearest beams and tightens the bound
-        qcx = math.floor(gx)
-        qcy = math.floor(gy)
-        inside = 0 <= qcx < nx and 0 <= qcy < ny
-        if inside:
-            count = _segment_cell(
-                qx,
-                qy,
-                seg,
-                entries,
-                cell_start,
-                items,
-                grid,
-                k,
-                best_d2,
-                best_id,
-                best_t,
-                buf,
-                qcx,
-                qcy,
-                count,
-                True,
-            )
-        lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, nx, ny)
-        for ix in range(lo_x, hi_x + 1):
-            for iy in range(lo_y, hi_y + 1):
-                if inside and ix == qcx and iy == qcy:
-                    continue
-                c = ix * ny + iy
-                # test the cell's list before calling: most cells of a wide square are empty
-                if (
-                    cell_start[c] < cell_start[c + 1]
-                    and _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]
-                ):
-                    count = _segment_cell(
-                        qx,
-                        qy,
-                        seg,
-                        entries,
-                        cell_start,
-                        items,
-                        grid,
-                        k,
-                        best_d2,
-                        best_id,
-                        best_t,
-                        buf,
-                        ix,
-                        iy,
-                        count,
-                        True,
-                    )
-        return count
+    qcx = math.floor(gx)
+    qcy = math.floor(gy)
+    inside = 0 <= qcx < nx and 0 <= qcy < ny
+    qc = qcx * ny + qcy
+    if n_warm == k and inside and cell_start[qc + 1] - cell_start[qc] > 4 * k:
+        # warm start in a dense cell: the cell's counting bound (as _segment_cell finds it after the warm
+        # candidates) decides which warm candidates can matter; only those are inserted, in their order.
+        kth = 0.0
+        for w in range(n_warm):
+            i = warm[w]
+            rx = qx - seg[i, 0]
+            ry = qy - seg[i, 1]
+            t = min(max((rx * seg[i, 2] + ry * seg[i, 3]) * seg[i, 4], 0.0), 1.0)
+            ex = rx - t * seg[i, 2]
+            ey = ry - t * seg[i, 3]
+            d2 = ex * ex + ey * ey
+            best_d2[w] = d2
+            best_t[w] = t
+            kth = max(kth, d2)
+        start = cell_start[qc]
+        end = cell_start[qc + 1]
+        n = end - start
+        ccx = grid.x0 + (qcx + 0.5) * cell
+        ccy = grid.y0 + (qcy + 0.5) * cell
+        _cell_segment_d2(np.float32(qx - ccx), np.float32(qy - ccy), entries, start, end, buf)
+        lim = math.sqrt(kth) + 1e-4
+        lim2 = lim * lim
+        cell_lim2 = _dense_cell_limit(buf, n, lim2, k)
+        for w in range(n_warm):
+            d2 = best_d2[w]
+            if d2 < cell_lim2:
+                best_d2[count] = d2
+                best_t[count] = best_t[w]
+                best_id[count] = warm[w]
+                count += 1
+        _rank_sort(best_d2, best_id, best_t, count)
+        lim2 = min(_screen_limit(best_d2, count, k), cell_lim2)
+        count = _offer_screened(
+            qx, qy, seg, items, start, end, k, best_d2, best_id, best_t, buf, count, True, lim2, cell_lim2
+        )
+        # k found by now (the k segments that met the counting bound are listed, or better ones are); were
+        # they not, the ring search below would finish the search
+        if count == k:
+            lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, nx, ny)
+            for ix in range(lo_x, hi_x + 1):
+                for iy in range(lo_y, hi_y + 1):
+                    if ix == qcx and iy == qcy:
+                        continue
+                    c = ix * ny + iy
+                    if (
+                        cell_start[c] < cell_start[c + 1]
+                        and _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]
+                    ):
+                        count = _segment_cell(
+                            qx, qy, seg, entries, cell_start, items, grid, k, best_d2, best_id, best_t, buf,
+                            ix, iy, count, True,
+                        )  # fmt: skip
+            return count
+    else:
+        for w in range(n_warm):
+            i = warm[w]
+            rx = qx - seg[i, 0]
+            ry = qy - seg[i, 1]
+            t = min(max((rx * seg[i, 2] + ry * seg[i, 3]) * seg[i, 4], 0.0), 1.0)
+            ex = rx - t * seg[i, 2]
+            ey = ry - t * seg[i, 3]
+            if n_warm <= k:
+                best_d2[w] = ex * ex + ey * ey
+                best_t[w] = t
+                best_id[w] = i
+                count += 1
+            else:
+                count = _insert(best_d2, best_id, best_t, count, k, ex * ex + ey * ey, i, t)
+        if n_warm <= k:
+            _rank_sort(best_d2, best_id, best_t, count)
+        if count == k:  # warm start: scan the square of cells within the current k-th distance
+            # the query's own cell first: in dense areas it holds the nearest beams and tightens the bound
+            if inside:
+                count = _segment_cell(
+                    qx, qy, seg, entries, cell_start, items, grid, k, best_d2, best_id, best_t, buf, qcx, qcy,
+                    count, True,
+                )  # fmt: skip
+            lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, nx, ny)
+            for ix in range(lo_x, hi_x + 1):
+                for iy in range(lo_y, hi_y + 1):
+                    if inside and ix == qcx and iy == qcy:
+                        continue
+                    c = ix * ny + iy
+                    # test the cell's list before calling: most cells of a wide square are empty
+                    if (
+                        cell_start[c] < cell_start[c + 1]
+                        and _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]
+                    ):
+                        count = _segment_cell(
+                            qx,
+                            qy,
+                            seg,
+                            entries,
+                            cell_start,
+                            items,
+                            grid,
+                            k,
+                            best_d2,
+                            best_id,
+                            best_t,
+                            buf,
+                            ix,
+                            iy,
+                            count,
+                            True,
+                        )
+            return count
     rings = rings_start(grid, gx, gy)
     while not rings.done:
         ix = rings.ix

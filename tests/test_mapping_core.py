@@ -77,7 +77,8 @@ def test_knn_is_exact(cell_m: float) -> None:
 
 def test_knn_is_exact_in_dense_cells_with_warm_starts() -> None:
     """Cells of thousands of beams (a robot's fans along a corridor) searched in render order, each search
-    warm-started from its neighbour's result: the dense-cell screening bound keeps every search exact."""
+    warm-started from its neighbour's result, and at the scans' origins: the dense-cell screening bound keeps
+    every search exact and finite."""
     rng = np.random.default_rng(7)
     n_scans, n_beams = 60, 181
     poses = np.c_[np.linspace(0, 6, n_scans), rng.normal(0, 0.05, n_scans), rng.normal(0, 0.1, n_scans)]
@@ -88,6 +89,8 @@ def test_knn_is_exact_in_dense_cells_with_warm_starts() -> None:
     assert np.diff(index.segment_index.cell_start).max() > 1000
     pts, _, (h, w) = grid_centres((-0.5, -1.0, 6.5, 1.0), 0.05)
     queries = pts[tile_order(int(h), int(w))][::3]
+    # the scans' origins, each the start of 181 segments at distance 0 (ties of the whole fan), in order
+    queries = np.vstack([queries, poses[:, :2]])
     _, free, t = index.gather(queries, 15, 15)
     for q, f, tf in zip(queries, free, t, strict=True):
         _, _, _, d_free = brute_neighbours(beams, q, 15, 15)
