@@ -602,6 +602,18 @@ def _cell_segment_d2(qrx, qry, ecopy, start, end, buf):
         buf[e - start] = ex * ex + ey * ey
 
 
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _warm_segment_d2(qx, qy, seg, i):
+    """Squared distance from (qx, qy) to segment ``i`` of ``seg`` and the clamped parameter t of its
+    closest point (eqs. 13-14)."""
+    rx = qx - seg[i, 0]
+    ry = qy - seg[i, 1]
+    t = min(max((rx * seg[i, 2] + ry * seg[i, 3]) * seg[i, 4], 0.0), 1.0)
+    ex = rx - t * seg[i, 2]
+    ey = ry - t * seg[i, 3]
+    return ex * ex + ey * ey, t
+
+
 @nb.njit(cache=True, error_model="numpy")
 def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, buf):
     """The k segments of ``segments`` (a :class:`SegmentSet`) nearest (qx, qy): squared distances, ids and
@@ -627,18 +639,13 @@ def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, bu
     qcy = math.floor(gy)
     inside = 0 <= qcx < nx and 0 <= qcy < ny
     qc = qcx * ny + qcy
+    square = False
     if n_warm == k and inside and cell_start[qc + 1] - cell_start[qc] > 4 * k:
         # warm start in a dense cell: the cell's counting bound (as _segment_cell finds it after the warm
         # candidates) decides which warm candidates can matter; only those are inserted, in their order.
         kth = 0.0
         for w in range(n_warm):
-            i = warm[w]
-            rx = qx - seg[i, 0]
-            ry = qy - seg[i, 1]
-            t = min(max((rx * seg[i, 2] + ry * seg[i, 3]) * seg[i, 4], 0.0), 1.0)
-            ex = rx - t * seg[i, 2]
-            ey = ry - t * seg[i, 3]
-            d2 = ex * ex + ey * ey
+            d2, t = _warm_segment_d2(qx, qy, seg, warm[w])
             best_d2[w] = d2
             best_t[w] = t
             kth = max(kth, d2)
@@ -665,76 +672,43 @@ def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, bu
         )
         # k found by now (the k segments that met the counting bound are listed, or better ones are); were
         # they not, the ring search below would finish the search
-        if count == k:
-            lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, nx, ny)
-            for ix in range(lo_x, hi_x + 1):
-                for iy in range(lo_y, hi_y + 1):
-                    if ix == qcx and iy == qcy:
-                        continue
-                    c = ix * ny + iy
-                    if (
-                        cell_start[c] < cell_start[c + 1]
-                        and _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]
-                    ):
-                        count = _segment_cell(
-                            qx, qy, seg, entries, cell_start, items, grid, k, best_d2, best_id, best_t, buf,
-                            ix, iy, count, True,
-                        )  # fmt: skip
-            return count
+        square = count == k
     else:
         for w in range(n_warm):
             i = warm[w]
-            rx = qx - seg[i, 0]
-            ry = qy - seg[i, 1]
-            t = min(max((rx * seg[i, 2] + ry * seg[i, 3]) * seg[i, 4], 0.0), 1.0)
-            ex = rx - t * seg[i, 2]
-            ey = ry - t * seg[i, 3]
+            d2, t = _warm_segment_d2(qx, qy, seg, i)
             if n_warm <= k:
-                best_d2[w] = ex * ex + ey * ey
+                best_d2[w] = d2
                 best_t[w] = t
                 best_id[w] = i
                 count += 1
             else:
-                count = _insert(best_d2, best_id, best_t, count, k, ex * ex + ey * ey, i, t)
+                count = _insert(best_d2, best_id, best_t, count, k, d2, i, t)
         if n_warm <= k:
             _rank_sort(best_d2, best_id, best_t, count)
-        if count == k:  # warm start: scan the square of cells within the current k-th distance
+        if count == k:  # warm start: the own cell, then the square of cells within the k-th distance
             # the query's own cell first: in dense areas it holds the nearest beams and tightens the bound
             if inside:
                 count = _segment_cell(
                     qx, qy, seg, entries, cell_start, items, grid, k, best_d2, best_id, best_t, buf, qcx, qcy,
                     count, True,
                 )  # fmt: skip
-            lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, nx, ny)
-            for ix in range(lo_x, hi_x + 1):
-                for iy in range(lo_y, hi_y + 1):
-                    if inside and ix == qcx and iy == qcy:
-                        continue
-                    c = ix * ny + iy
-                    # test the cell's list before calling: most cells of a wide square are empty
-                    if (
-                        cell_start[c] < cell_start[c + 1]
-                        and _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]
-                    ):
-                        count = _segment_cell(
-                            qx,
-                            qy,
-                            seg,
-                            entries,
-                            cell_start,
-                            items,
-                            grid,
-                            k,
-                            best_d2,
-                            best_id,
-                            best_t,
-                            buf,
-                            ix,
-                            iy,
-                            count,
-                            True,
-                        )
-            return count
+            square = True
+    if square:  # the other cells of the square within the current k-th distance
+        lo_x, hi_x, lo_y, hi_y = _square(gx, gy, math.sqrt(best_d2[k - 1]) / cell, nx, ny)
+        for ix in range(lo_x, hi_x + 1):
+            for iy in range(lo_y, hi_y + 1):
+                if inside and ix == qcx and iy == qcy:
+                    continue
+                c = ix * ny + iy
+                # test the cell's list before calling: most cells of a wide square are empty
+                near = _cell_d2(gx, gy, ix, iy) * cell * cell < best_d2[k - 1]
+                if cell_start[c] < cell_start[c + 1] and near:
+                    count = _segment_cell(
+                        qx, qy, seg, entries, cell_start, items, grid, k, best_d2, best_id, best_t, buf,
+                        ix, iy, count, True,
+                    )  # fmt: skip
+        return count
     rings = rings_start(grid, gx, gy)
     while not rings.done:
         ix = rings.ix
