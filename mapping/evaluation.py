@@ -16,7 +16,6 @@ from numpy.typing import NDArray
 
 from mapping.beams import Beams
 from mapping.exports import MapLayers
-from mapping.gpmap import GPOccupancyMap
 from mapping.metrics import roc_auc
 
 FloatArray = NDArray[np.float64]
@@ -171,15 +170,6 @@ def observed_points(
     return counts[ij[:, 1], ij[:, 0]] > 0
 
 
-def ground_truth_auc(
-    gp: GPOccupancyMap, occupancy: NDArray, origin_xy_m: NDArray, resolution_m: float
-) -> float:
-    """AUC of p(occ) over every cell of a ground-truth raster (SPEC section 6, simulated worlds):
-    ``occupancy`` (H, W) truthy where occupied, its lower-left corner at ``origin_xy_m``."""
-    centres = raster_cell_centres(occupancy.shape, np.asarray(origin_xy_m, np.float64), resolution_m)
-    return roc_auc(gp.query(centres, sort=False).probability, np.asarray(occupancy).astype(bool).ravel())
-
-
 def rendered_ground_truth_auc(
     rendered: MapLayers,
     occupancy: NDArray,
@@ -187,10 +177,11 @@ def rendered_ground_truth_auc(
     resolution_m: float,
     query: Callable[[FloatArray], FloatArray],
 ) -> float:
-    """:func:`ground_truth_auc` of a map already rendered: the raster's cells that are cells of ``rendered``
-    (same resolution and lattice, within its bounds) are scored on its float32 p(occ), the map as exported,
-    and only the others on ``query`` ((P, 2) points -> (P,) p(occ) of the same map), which is not called
-    when there are none."""
+    """AUC of a map's p(occ) over every cell of a ground-truth raster (SPEC section 6, simulated worlds):
+    ``occupancy`` (H, W) truthy where occupied, its lower-left corner at ``origin_xy_m``. The raster's cells
+    that are cells of the map already ``rendered`` (same resolution and lattice, within its bounds) are
+    scored on its float32 p(occ), the map as exported, and only the others on ``query`` ((P, 2) points ->
+    (P,) p(occ) of the same map), which is not called when there are none."""
     origin = np.asarray(origin_xy_m, np.float64)
     centres = raster_cell_centres(occupancy.shape, origin, resolution_m)
     probability = np.empty(centres.shape[0])
