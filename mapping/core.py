@@ -20,6 +20,12 @@ variance and link (``_write_lanes``). A lane whose factorisation fails is redone
 Arguments are named tuples (:class:`LocalGP`, :class:`InputGaussians`, and the indexes of
 :mod:`mapping.index`), which numba compiles like separate arguments.
 
+The compiled steps that allocate nothing are compiled without numba's reference counting (``_nrt=False``,
+numba's option for code that needs no runtime): with it every array argument of a call costs an atomic
+increment and decrement, which in the neighbour search, called for every query, took about a quarter of
+its time. Such a function cannot allocate (numba refuses to compile it then), so allocation stays in the
+drivers (``_predict_chunk``, ``_search_scratch``).
+
 Compiled code is cached on disk (``cache=True``). Numba's cache does not notice edits to compiled functions
 of OTHER modules that a cached function calls (e.g. :mod:`mapping.index` from :func:`predict_batch`): after
 editing ``mapping/index.py`` or ``mapping/raster.py``, delete ``mapping/__pycache__/*.nb[ic]`` (``make env``
@@ -58,7 +64,7 @@ def _phi(z):
     return 0.5 * math.erfc(-z / SQRT2)
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=True)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _kernel_blocks(kid, kp, X, n, K, ks, s):
     """Fill K[:n, :n] (upper and lower) and ks[:n] for training inputs X[:n] (centred on the query, which is
     the origin) and return k(x*, x*). ``s`` (n,) is scratch."""
@@ -104,7 +110,7 @@ def _stationary(kid, c, r2):
     return (1.0 + u + u * u / 3.0) * math.exp(-u)
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=True)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _cholesky_inplace(A, n, diag):
     """Lower Cholesky factor of the symmetric A[:n, :n] written into its lower triangle (row-major,
     Cholesky-Banachiewicz); the upper triangle keeps A, ``diag`` (n,) must hold A's diagonal so that a failed
@@ -123,7 +129,7 @@ def _cholesky_inplace(A, n, diag):
     return True
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=True)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _forward(L, n, b, out):
     """Solve L out = b for the lower-triangular L[:n, :n]."""
     for i in range(n):
@@ -133,7 +139,7 @@ def _forward(L, n, b, out):
         out[i] = acc / L[i, i]
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _solve_local(K, ks, kss, y, n, noise_var, jitter, diag, v, w):
     """Mean and variance of the local GP (eqs. 2-3) from K[:n,:n] (noise-free), ks, kss and labels y.
 
@@ -172,7 +178,7 @@ def _solve_local(K, ks, kss, y, n, noise_var, jitter, diag, v, w):
     return mu, var
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y):
     """Training inputs centred on the query: occupied endpoints (+1) then free points s + t d (-1)."""
     for i in range(no):
@@ -227,7 +233,7 @@ def asin_fast(x):
     return math.copysign(a + big * (_PIO2 - 3.0 * a), x)
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=True)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _kernel_lanes(kid, kp, XL, mask, n, K, ks, s):
     """Lower triangle of K[:n, :n, lane] (noise-free, pads zeroed) and ks[:n, lane] for LANES local problems
     with inputs XL (n, 2, LANES) centred on their queries; ``mask`` (n, LANES) is 1 for real points, 0 for
@@ -268,7 +274,7 @@ def _kernel_lanes(kid, kp, XL, mask, n, K, ks, s):
             ks[i, lane] = sf2 * _stationary(kid, kp[1], x * x + y * y) * mask[i, lane]
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=True)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _cholesky_lanes(K, n, invd, acc, ok):
     """In-place lower Cholesky of LANES matrices K[:n, :n, lane] (lower triangles); ``invd`` (n, LANES)
     receives 1 / L_ii; ``acc`` (2, LANES) is scratch. ``ok[lane]`` is set False where a pivot is not
@@ -314,7 +320,7 @@ def _cholesky_lanes(K, n, invd, acc, ok):
             j += 1
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=True)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _forward_lanes(K, n, invd, b1, out1, b2, out2):
     """Solve L out1[:, lane] = b1[:, lane] and L out2[:, lane] = b2[:, lane] for the LANES lower factors in K
     (both in one pass over L)."""
@@ -345,7 +351,7 @@ INPUTS_GH_DIFFERENCE = 2  # GPPOL, stationary kernel, Gauss-Hermite over the dif
 INPUTS_GH_NODES = 3  # GPPOL, NN kernel, Gauss-Hermite nodes of both inputs (eq. 23)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, y):
     """GPPOL training inputs centred on the query: means X (n, 2) and packed covariances S (n, 3).
 
@@ -373,7 +379,7 @@ def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, y):
     return no + nf
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=True)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _girard_lanes(kp, XL, SL, mask, n, K, ks):
     """Eq. (19) for the SE kernel (``kp = (sf2, 1/l^2)``): lower triangle of K[:n, :n, lane] and ks[:n, lane]
     (Sigma_i + Sigma_j between training inputs, Sigma_i against the query at the origin; K_ii = sf2)."""
@@ -417,7 +423,7 @@ def _gh_difference_value(kid, c, gz, gw, dx, dy, s00, s01, s11):
     return acc
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=True)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _gh_difference_lanes(kid, kp, XL, SL, mask, n, K, ks, gz, gw):
     """Eq. (23) for a stationary kernel, as the 2-D integral over the difference of two independent inputs
     (``x_i - x_j ~ N(rho_i - rho_j, Sigma_i + Sigma_j)``); K_ii = sf2 (one draw)."""
@@ -441,7 +447,7 @@ def _gh_difference_lanes(kid, kp, XL, SL, mask, n, K, ks, gz, gw):
             ks[i, lane] = sf2 * v * mask[i, lane]
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=True)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _gh_nodes_lanes(kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN):
     """Eq. (23) for the NN kernel (eq. 7): nodes ``phi_ia = rho_i + chol(Sigma_i) z_a`` of every input
     (PH (n, m, 2, LANES), their 1/sqrt(1 + c0 + c1 |phi|^2) in SN (n, m, LANES)); K_ij = sum_ab w_a w_b
@@ -494,7 +500,7 @@ def _gh_nodes_lanes(kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN):
             ks[i, lane] *= sf2 * mask[i, lane]
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _noisy_kernel_lanes(mode, kid, kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN):
     """The GPPOL kernel blocks of ``mode`` (INPUTS_GIRARD, INPUTS_GH_DIFFERENCE or INPUTS_GH_NODES)."""
     if mode == INPUTS_GIRARD:
@@ -858,7 +864,7 @@ def _noisy_kernel_single(mode, kid, kp, XL, SL, lane, n, K, ks, gz, gw):
     return _prior_var(kid, kp)
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _prior_var(kid, kp):
     """k(x*, x*) in query-centred coordinates."""
     if kid == KERNEL_NN:

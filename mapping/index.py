@@ -8,7 +8,9 @@ stops when the k-th best distance is below the distance to the next ring, so res
 Compiled code takes an index as named tuples (:class:`CellIndex`, and the data with it: :class:`PointSet`,
 :class:`SegmentSet`); :class:`GridIndex` is the Python-side index that builds them. Numba's parallel loops
 pass only one level of tuples into their bodies, so a parallel caller hands them in flat
-(:func:`flat_points` / :func:`points_of`, :func:`flat_segments` / :func:`segments_of`).
+(:func:`flat_points` / :func:`points_of`, :func:`flat_segments` / :func:`segments_of`). The searches and
+their non-inlined helpers allocate nothing and are compiled without reference counting (``_nrt=False``,
+see :mod:`mapping.core`).
 """
 
 from __future__ import annotations
@@ -416,7 +418,7 @@ def _point_cell(qx, qy, pts, cell_start, k, best_d2, best_id, best_t, buf, c, co
     return count
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def knn_points(qx, qy, points, k, best_d2, best_id, best_t, warm, n_warm, buf):
     """The k points of ``points`` (a :class:`PointSet`) nearest (qx, qy): writes sorted squared distances
     and indices into ``points.xy``; returns how many were found. ``warm[:n_warm]`` are distinct candidate
@@ -487,7 +489,7 @@ def knn_points(qx, qy, points, k, best_d2, best_id, best_t, warm, n_warm, buf):
     return count
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=True)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _cell_point_d2(qx, qy, pts, start, end, buf):
     """Squared distances from (qx, qy) to ``pts[start:end]`` into ``buf`` (vectorised)."""
     for i in range(start, end):
@@ -576,7 +578,7 @@ def _screen_limit(best_d2, count, k):
     return lim * lim
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=True)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _count_within(buf, n, lim2):
     """How many of ``buf[:n]`` are at most ``lim2`` (vectorised)."""
     c = 0
@@ -585,7 +587,7 @@ def _count_within(buf, n, lim2):
     return c
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=True)
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _cell_segment_d2(qrx, qry, ecopy, start, end, buf):
     """Squared distances (float32, vectorised) from the query (relative to the cell centre) to the segments
     listed in entries ``start:end``, into ``buf``."""
@@ -614,7 +616,7 @@ def _warm_segment_d2(qx, qy, seg, i):
     return ex * ex + ey * ey, t
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
 def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, buf):
     """The k segments of ``segments`` (a :class:`SegmentSet`) nearest (qx, qy): squared distances, ids and
     the clamped parameter t in [0, 1] of the closest point ``s + t d`` (eqs. 13-14); returns how many were

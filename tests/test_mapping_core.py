@@ -207,3 +207,32 @@ def test_asin_fast_matches_numpy() -> None:
 
     x = np.r_[np.linspace(-1, 1, 200_001), -1.0, -0.5, 0.0, 0.5, 1.0, 1e-300, -1e-17]
     np.testing.assert_allclose(many(x), np.arcsin(x), rtol=0, atol=1e-15)
+
+
+def test_search_and_solves_do_no_reference_counting() -> None:
+    """The per-query compiled steps are built without numba's reference counting (mapping.core docstring):
+    compiled afresh with their own options (numba shows no code of a function loaded from its cache), their
+    code calls neither NRT_incref nor NRT_decref, while the same function compiled with the default options
+    does."""
+    import numba as nb
+
+    from mapping import index
+
+    bi = BeamIndex.build(random_beams())
+    segments, points, k = bi.segments, bi.points, 5
+
+    def buffers(most: int, dtype: type) -> tuple:
+        return (np.empty(k), np.empty(k, np.int64), np.empty(k), np.empty(k, np.int64), 0,
+                np.empty(max(most, 1), dtype))  # fmt: skip
+
+    calls = (
+        (index.knn_segments, (0.0, 0.0, segments, k, *buffers(segments.index.most, np.float32))),
+        (index.knn_points, (0.0, 0.0, points, k, *buffers(points.index.most, np.float64))),
+    )
+    for fn, args in calls:
+        assert fn.targetoptions.get("_nrt") is False, fn.__name__
+        for options, counts in ((fn.targetoptions, False), ({"error_model": "numpy"}, True)):
+            fresh = nb.njit(**options)(fn.py_func)
+            assert fresh(*args) == k
+            ir = fresh.inspect_llvm(fresh.signatures[0])
+            assert ("NRT_incref" in ir or "NRT_decref" in ir) is counts, (fn.__name__, options)
