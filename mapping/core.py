@@ -575,6 +575,7 @@ class _SearchScratch(NamedTuple):
     warm_f: IntArray
     pbuf: FloatArray
     sbuf: NDArray[np.float32]
+    scand: FloatArray
 
 
 class _LaneScratch(NamedTuple):
@@ -628,6 +629,7 @@ def _search_scratch(points, segments, k_occ, k_free):
         np.empty(max(k_free, 1), np.int64),
         np.empty(max(points.index.most, 1)),
         np.empty(max(segments.index.most, 1), np.float32),
+        np.empty((3, max(segments.index.most, 1))),
     )
 
 
@@ -756,7 +758,7 @@ def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean,
         np.empty((nmax, LANES)), np.empty((2, LANES)), np.empty(LANES, np.bool_),
         np.empty((nmax, nodes, 2, LANES)), np.empty((nmax, nodes, LANES)),
     )  # fmt: skip
-    d2o, ido, to, d2f, idf, tf, warm_o, warm_f, pbuf, sbuf = sc
+    d2o, ido, to, d2f, idf, tf, warm_o, warm_f, pbuf, sbuf, scand = sc
     X, S, y = one.X, one.S, one.y
     XL, SL, yL, mask, counts = lanes.XL, lanes.SL, lanes.yL, lanes.mask, lanes.counts
     pts, seg = points.xy, segments.seg
@@ -773,7 +775,7 @@ def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean,
             qx = queries[base + lane, 0]
             qy = queries[base + lane, 1]
             no = knn_points(qx, qy, points, k_occ, d2o, ido, to, warm_o, no, pbuf)
-            nf = knn_segments(qx, qy, segments, k_free, d2f, idf, tf, warm_f, nf, sbuf)
+            nf = knn_segments(qx, qy, segments, k_free, d2f, idf, tf, warm_f, nf, sbuf, scand)
             _keep_warm(ido, no, warm_o)
             _keep_warm(idf, nf, warm_f)
             # the training set, centred on the query, into this lane
@@ -875,14 +877,16 @@ def _prior_var(kid, kp):
 @nb.njit(cache=True, error_model="numpy")
 def _gather_chunk(queries, lo, hi, points, segments, k_occ, k_free, out_occ, out_free, out_t):
     """Neighbours of ``queries[lo:hi]`` (see :func:`gather_batch`)."""
-    d2o, ido, to, d2f, idf, tf, warm_o, warm_f, pbuf, sbuf = _search_scratch(points, segments, k_occ, k_free)
+    d2o, ido, to, d2f, idf, tf, warm_o, warm_f, pbuf, sbuf, scand = _search_scratch(
+        points, segments, k_occ, k_free
+    )
     no = 0
     nf = 0
     for q in range(lo, hi):
         qx = queries[q, 0]
         qy = queries[q, 1]
         no = knn_points(qx, qy, points, k_occ, d2o, ido, to, warm_o, no, pbuf)
-        nf = knn_segments(qx, qy, segments, k_free, d2f, idf, tf, warm_f, nf, sbuf)
+        nf = knn_segments(qx, qy, segments, k_free, d2f, idf, tf, warm_f, nf, sbuf, scand)
         _keep_warm(ido, no, warm_o)
         _keep_warm(idf, nf, warm_f)
         for i in range(k_occ):

@@ -504,7 +504,8 @@ def _cell_point_d2(qx, qy, pts, start, end, buf):
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
 def _segment_cell(
-    qx, qy, seg, entries, cell_start, items, grid, k, best_d2, best_id, best_t, buf, ix, iy, count, check_dup
+    qx, qy, seg, entries, cell_start, items, grid, k, best_d2, best_id, best_t, buf, cand, ix, iy, count,
+    check_dup,
 ):  # fmt: skip
     """Offer the segments of cell (ix, iy) to the top-k buffers (float32 screen, exact float64 check)."""
     c = ix * grid.ny + iy
@@ -522,8 +523,9 @@ def _segment_cell(
         cell_lim2 = _dense_cell_limit(buf, n, lim2, k)
         lim2 = min(lim2, cell_lim2)
     return _offer_screened(
-        qx, qy, seg, items, start, end, k, best_d2, best_id, best_t, buf, count, check_dup, lim2, cell_lim2
-    )
+        qx, qy, seg, items, start, end, k, best_d2, best_id, best_t, buf, cand, count, check_dup, lim2,
+        cell_lim2,
+    )  # fmt: skip
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -545,27 +547,43 @@ def _dense_cell_limit(buf, n, lim2, k):
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
 def _offer_screened(
-    qx, qy, seg, items, start, end, k, best_d2, best_id, best_t, buf, count, check_dup, lim2, cell_lim2
-):
+    qx, qy, seg, items, start, end, k, best_d2, best_id, best_t, buf, cand, count, check_dup, lim2, cell_lim2
+):  # fmt: skip
     """Offer the entries ``start:end`` whose screened distance (``buf``) is within ``lim2`` to the top-k
-    buffers, exactly (float64); the limit follows the k-th distance, capped at ``cell_lim2``."""
-    for e in range(start, end):
-        if buf[e - start] > lim2:
-            continue
-        i = items[e]
-        rx = qx - seg[i, 0]
-        ry = qy - seg[i, 1]
-        ddx = seg[i, 2]
-        ddy = seg[i, 3]
-        t = min(max((rx * ddx + ry * ddy) * seg[i, 4], 0.0), 1.0)
-        ex = rx - t * ddx
-        ey = ry - t * ddy
-        d2 = ex * ex + ey * ey
+    buffers, exactly (float64); the limit follows the k-th distance, capped at ``cell_lim2``.
+
+    With a finite limit the candidates are listed first (``cand[0]``), then evaluated in one pass of
+    independent iterations (``cand[1]``, ``cand[2]``: d2, t), so that the loads of their rows of ``seg``,
+    scattered over the map's beams and mostly cache misses, overlap; then offered in entry order. A
+    candidate the running limit would have skipped is beyond the k-th distance by then (the screen is
+    conservative) and is not kept either way: the result is that of offering one by one."""
+    if lim2 == np.inf:  # a cold start: the limit falls as the first k are found
+        for e in range(start, end):
+            if buf[e - start] > lim2:
+                continue
+            i = items[e]
+            d2, t = _warm_segment_d2(qx, qy, seg, i)
+            if count < k or d2 < best_d2[k - 1]:
+                if check_dup and _listed(best_id, count, i):
+                    continue
+                count = _insert(best_d2, best_id, best_t, count, k, d2, i, t)
+                lim2 = min(_screen_limit(best_d2, count, k), cell_lim2)
+        return count
+    nc = 0
+    for e in range(start, end):  # branch-free listing
+        cand[0, nc] = e
+        nc += buf[e - start] <= lim2
+    for c in range(nc):
+        d2, t = _warm_segment_d2(qx, qy, seg, items[int(cand[0, c])])
+        cand[1, c] = d2
+        cand[2, c] = t
+    for c in range(nc):
+        d2 = cand[1, c]
         if count < k or d2 < best_d2[k - 1]:
+            i = items[int(cand[0, c])]
             if check_dup and _listed(best_id, count, i):
                 continue
-            count = _insert(best_d2, best_id, best_t, count, k, d2, i, t)
-            lim2 = min(_screen_limit(best_d2, count, k), cell_lim2)
+            count = _insert(best_d2, best_id, best_t, count, k, d2, i, cand[2, c])
     return count
 
 
@@ -617,12 +635,13 @@ def _warm_segment_d2(qx, qy, seg, i):
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
-def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, buf):
+def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, buf, cand):
     """The k segments of ``segments`` (a :class:`SegmentSet`) nearest (qx, qy): squared distances, ids and
     the clamped parameter t in [0, 1] of the closest point ``s + t d`` (eqs. 13-14); returns how many were
     found. A cell is first screened by a vectorised float32 pass over its entries (into ``buf``,
     ``segments.index.most`` long) and only candidates within the current k-th distance plus 0.1 mm are
-    evaluated exactly, in float64: the result is exact. A segment listed in several cells is counted once.
+    evaluated exactly, in float64 (listed in ``cand``, (3, ``segments.index.most``) float64 scratch, see
+    ``_offer_screened``): the result is exact. A segment listed in several cells is counted once.
     ``warm[:n_warm]``: distinct candidates tried first (as in :func:`knn_points`)."""
     count = 0
     if k == 0 or segments.index.items.shape[0] == 0:
@@ -670,8 +689,9 @@ def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, bu
         _rank_sort(best_d2, best_id, best_t, count)
         lim2 = min(_screen_limit(best_d2, count, k), cell_lim2)
         count = _offer_screened(
-            qx, qy, seg, items, start, end, k, best_d2, best_id, best_t, buf, count, True, lim2, cell_lim2
-        )
+            qx, qy, seg, items, start, end, k, best_d2, best_id, best_t, buf, cand, count, True, lim2,
+            cell_lim2,
+        )  # fmt: skip
         # k found by now (the k segments that met the counting bound are listed, or better ones are); were
         # they not, the ring search below would finish the search
         square = count == k
@@ -692,8 +712,8 @@ def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, bu
             # the query's own cell first: in dense areas it holds the nearest beams and tightens the bound
             if inside:
                 count = _segment_cell(
-                    qx, qy, seg, entries, cell_start, items, grid, k, best_d2, best_id, best_t, buf, qcx, qcy,
-                    count, True,
+                    qx, qy, seg, entries, cell_start, items, grid, k, best_d2, best_id, best_t, buf, cand,
+                    qcx, qcy, count, True,
                 )  # fmt: skip
             square = True
     if square:  # the other cells of the square within the current k-th distance
@@ -708,7 +728,7 @@ def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, bu
                 if cell_start[c] < cell_start[c + 1] and near:
                     count = _segment_cell(
                         qx, qy, seg, entries, cell_start, items, grid, k, best_d2, best_id, best_t, buf,
-                        ix, iy, count, True,
+                        cand, ix, iy, count, True,
                     )  # fmt: skip
         return count
     rings = rings_start(grid, gx, gy)
@@ -732,6 +752,7 @@ def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, bu
                 best_id,
                 best_t,
                 buf,
+                cand,
                 ix,
                 iy,
                 count,

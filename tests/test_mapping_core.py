@@ -225,8 +225,12 @@ def test_search_and_solves_do_no_reference_counting() -> None:
         return (np.empty(k), np.empty(k, np.int64), np.empty(k), np.empty(k, np.int64), 0,
                 np.empty(max(most, 1), dtype))  # fmt: skip
 
+    candidates = np.empty((3, max(segments.index.most, 1)))
     calls = (
-        (index.knn_segments, (0.0, 0.0, segments, k, *buffers(segments.index.most, np.float32))),
+        (
+            index.knn_segments,
+            (0.0, 0.0, segments, k, *buffers(segments.index.most, np.float32), candidates),
+        ),
         (index.knn_points, (0.0, 0.0, points, k, *buffers(points.index.most, np.float64))),
     )
     for fn, args in calls:
