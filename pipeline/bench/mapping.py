@@ -16,8 +16,10 @@ few are seen far away through windows, much of that map empty) is reported besid
 (``full_bounds_*``). Numba compilation (or loading it from the cache) is timed apart, by a warm-up call on a
 few points, and excluded from the rates.
 
-The machine may be shared: wall-clock rates are reported beside the CPU time the work took (CPU seconds
-summed over threads), whose rate ``*_per_cpu_s`` is less sensitive to other processes.
+The machine may be shared: each render (and the search alone) is timed ``RENDER_RUNS`` times and the rates
+come from the median run (the single runs, ``*_wall_s_runs``, vary by 10-30 % on a shared 2-core machine);
+wall-clock rates are reported beside the CPU time the work took (CPU seconds summed over threads), whose
+rate ``*_per_cpu_s`` is less sensitive to other processes.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from pipeline.progress import Progress
 RESOLUTION_M = 0.1
 PERTURB_COV = np.diag([0.1**2, 0.1**2, 0.02**2])  # the Intel perturbation experiment's pose covariance
 CHOICE_QUERIES = 20_000
+RENDER_RUNS = 5
 GPPOL_CHOICES = (  # (mapping.gppol.kernel, .expectation, .gh_level)
     ("se", "girard", 3),
     ("se", "gauss_hermite", 3),
@@ -64,6 +67,22 @@ class _Timer:
     def __exit__(self, *exc: object) -> None:
         self.wall = time.perf_counter() - self.wall0
         self.cpu = _cpu_s() - self.cpu0
+
+
+class _Runs:
+    """``runs`` timings of ``fn()``: ``wall`` and ``cpu`` are the medians, ``walls`` every run's wall time,
+    ``result`` the last run's return value."""
+
+    def __init__(self, fn: Any, runs: int = RENDER_RUNS) -> None:
+        self.walls: list[float] = []
+        cpus = []
+        for _ in range(runs):
+            with _Timer() as t:
+                self.result = fn()
+            self.walls.append(t.wall)
+            cpus.append(t.cpu)
+        self.wall = float(np.median(self.walls))
+        self.cpu = float(np.median(cpus))
 
 
 def bench_mapping(progress: Progress | None = None, data_dir: Path | None = None) -> dict[str, Any]:
@@ -91,13 +110,12 @@ def bench_mapping(progress: Progress | None = None, data_dir: Path | None = None
             gp.query(pts[:64], sort=False)
             gp.index.gather(pts[:64], cfg.k_occupied, cfg.k_free)
         bar.advance()
-        with _Timer() as t_map:
-            layers = gp.render(bounds, RESOLUTION_M)
+        t_map = _Runs(lambda: gp.render(bounds, RESOLUTION_M))
+        layers = t_map.result
         bar.advance()
         n = pts.shape[0]
         in_render_order = pts[tile_order(int(h), int(w))]  # the search alone, in the order render uses
-        with _Timer() as t_gather:
-            gp.index.gather(in_render_order, cfg.k_occupied, cfg.k_free)
+        t_gather = _Runs(lambda: gp.index.gather(in_render_order, cfg.k_occupied, cfg.k_free))
         with _Timer() as t_full:
             full = gp.render(full_bounds, RESOLUTION_M)
         bar.advance()
@@ -128,9 +146,11 @@ def bench_mapping(progress: Progress | None = None, data_dir: Path | None = None
             "threads": numba.get_num_threads(),
             "gpfol_queries": n,
             "gpfol_wall_s": t_map.wall,
+            "gpfol_wall_s_runs": t_map.walls,
             "gpfol_cpu_s": t_map.cpu,
             "gpfol_queries_per_cpu_s": n / max(t_map.cpu, 1e-9),
             "neighbour_search_wall_s": t_gather.wall,
+            "neighbour_search_wall_s_runs": t_gather.walls,
             "gp_solve_wall_s": solve_s,
             "neighbour_search_share": t_gather.wall / max(t_map.wall, 1e-9),
             "compile_or_cache_load_s": t_compile.wall,
@@ -170,8 +190,7 @@ def _bench_gppol(
     with _Timer() as t_inputs:
         builder.gaussian_inputs(beams, cov, params.kernel)  # the UT of every beam alone
     gp.query(pts[:64], sort=False)  # compile / load from cache
-    with _Timer() as t_map:
-        gp.render(bounds, RESOLUTION_M)
+    t_map = _Runs(lambda: gp.render(bounds, RESOLUTION_M))
     n = pts.shape[0]
     return {
         "gppol_queries_per_s": n / t_map.wall,
@@ -179,6 +198,7 @@ def _bench_gppol(
         "gppol_expectation": {"method": gp.inputs.expectation.method, "level": gp.inputs.expectation.level},
         "gppol_queries": n,
         "gppol_wall_s": t_map.wall,
+        "gppol_wall_s_runs": t_map.walls,
         "gppol_cpu_s": t_map.cpu,
         "gppol_queries_per_cpu_s": n / max(t_map.cpu, 1e-9),
         "gppol_neighbour_search_wall_s": gather_s,
