@@ -552,7 +552,8 @@ def _offer_screened(
     """Offer the entries ``start:end`` whose screened distance (``buf``) is within ``lim2`` to the top-k
     buffers, exactly (float64); the limit follows the k-th distance, capped at ``cell_lim2``.
 
-    With a finite limit the candidates are listed first (``cand[0]``), then evaluated in one pass of
+    With a finite limit the candidates are listed first (``cand[0]``, entry numbers held exactly as float64
+    so that one scratch array serves), then evaluated in one pass of
     independent iterations (``cand[1]``, ``cand[2]``: d2, t), so that the loads of their rows of ``seg``,
     scattered over the map's beams and mostly cache misses, overlap; then offered in entry order. A
     candidate the running limit would have skipped is beyond the k-th distance by then (the screen is
@@ -562,7 +563,7 @@ def _offer_screened(
             if buf[e - start] > lim2:
                 continue
             i = items[e]
-            d2, t = _warm_segment_d2(qx, qy, seg, i)
+            d2, t = _segment_d2(qx, qy, seg, i)
             if count < k or d2 < best_d2[k - 1]:
                 if check_dup and _listed(best_id, count, i):
                     continue
@@ -574,7 +575,7 @@ def _offer_screened(
         cand[0, nc] = e
         nc += buf[e - start] <= lim2
     for c in range(nc):
-        d2, t = _warm_segment_d2(qx, qy, seg, items[int(cand[0, c])])
+        d2, t = _segment_d2(qx, qy, seg, items[int(cand[0, c])])
         cand[1, c] = d2
         cand[2, c] = t
     for c in range(nc):
@@ -623,7 +624,7 @@ def _cell_segment_d2(qrx, qry, ecopy, start, end, buf):
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
-def _warm_segment_d2(qx, qy, seg, i):
+def _segment_d2(qx, qy, seg, i):
     """Squared distance from (qx, qy) to segment ``i`` of ``seg`` and the clamped parameter t of its
     closest point (eqs. 13-14)."""
     rx = qx - seg[i, 0]
@@ -666,7 +667,7 @@ def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, bu
         # candidates) decides which warm candidates can matter; only those are inserted, in their order.
         kth = 0.0
         for w in range(n_warm):
-            d2, t = _warm_segment_d2(qx, qy, seg, warm[w])
+            d2, t = _segment_d2(qx, qy, seg, warm[w])
             best_d2[w] = d2
             best_t[w] = t
             kth = max(kth, d2)
@@ -698,7 +699,7 @@ def knn_segments(qx, qy, segments, k, best_d2, best_id, best_t, warm, n_warm, bu
     else:
         for w in range(n_warm):
             i = warm[w]
-            d2, t = _warm_segment_d2(qx, qy, seg, i)
+            d2, t = _segment_d2(qx, qy, seg, i)
             if n_warm <= k:
                 best_d2[w] = d2
                 best_t[w] = t

@@ -209,8 +209,8 @@ def test_asin_fast_matches_numpy() -> None:
     np.testing.assert_allclose(many(x), np.arcsin(x), rtol=0, atol=1e-15)
 
 
-def test_search_and_solves_do_no_reference_counting() -> None:
-    """The per-query compiled steps are built without numba's reference counting (mapping.core docstring):
+def test_the_searches_do_no_reference_counting() -> None:
+    """The neighbour searches are built without numba's reference counting (mapping.core docstring):
     compiled afresh with their own options (numba shows no code of a function loaded from its cache), their
     code calls neither NRT_incref nor NRT_decref, while the same function compiled with the default options
     does."""
