@@ -553,9 +553,9 @@ def _offer_screened(
     buffers, exactly (float64); the limit follows the k-th distance, capped at ``cell_lim2``.
 
     With a finite limit the candidates are listed first (``cand[0]``, entry numbers held exactly as float64
-    so that one scratch array serves), then evaluated in one pass of
-    independent iterations (``cand[1]``, ``cand[2]``: d2, t), so that the loads of their rows of ``seg``,
-    scattered over the map's beams and mostly cache misses, overlap; then offered in entry order. A
+    so that one scratch array serves), then evaluated in one pass of independent iterations (``cand[1]``,
+    ``cand[2]``: d2, t), so that the loads of their rows of ``seg``, scattered over the map's beams and
+    mostly cache misses, overlap; then offered in entry order. A
     candidate the running limit would have skipped is beyond the k-th distance by then (the screen is
     conservative) and is not kept either way: the result is that of offering one by one."""
     if lim2 == np.inf:  # a cold start: the limit falls as the first k are found
