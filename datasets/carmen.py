@@ -75,6 +75,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets import se2
 from datasets.config import InputConfig
 from datasets.errors import DatasetError
 from datasets.keyframe_match import ScanMatch, match_keyframe_scans, match_scans
@@ -115,6 +116,69 @@ def is_corrected_log(path: str | Path) -> bool:
     """
     name = Path(path).name.lower()
     return ".gfs." in name or "corrected" in name
+
+
+ANCHOR_TOLERANCE = 1e-6  # m and rad: an ODOM record re-anchored at a scan repeats that scan's logged pose
+
+
+def corrected_log_odometry(recording: Recording) -> tuple[Trajectory | None, str]:
+    """The raw wheel odometry hidden in a SLAM-corrected log's ODOM records, one pose per scan.
+
+    GMapping-corrected logs (the Radish ``*-corrected.log`` files) re-anchor their ODOM stream at every
+    scan: the first ODOM record after a scan repeats its corrected pose, and the records up to the next
+    scan integrate the raw wheel motion from there. So the motion from that first record to the last one
+    before the next scan is the wheels' own increment between the two scans (a rigid motion of the raw
+    chain: no correction leaks into it). Chained from the origin, these increments are wheel odometry.
+
+    An interval whose records do not start at the scan's pose, or hold fewer than two records (a gap in
+    the wheel records), has no known increment: the scan it leads to gets a NaN pose, so the steps into and
+    out of it are registered without wheels. Returns ``(Trajectory at the scan stamps or None, phrase)``:
+    None when the log is not such a corrected log or fewer than half of its steps are known (e.g. ODOM
+    records that only repeat the corrected poses).
+    """
+    meta = recording.meta if isinstance(recording.meta, dict) else {}
+    none = "none: the log is SLAM-corrected (its odometry fields are the corrected poses)"
+    if not meta.get("corrected") or recording.odometry is None or "odometry_line_numbers" not in meta:
+        return None, none
+    scans_at = np.asarray(recording.scan_poses.poses_xytheta, dtype=np.float64)
+    n = scans_at.shape[0]
+    if n < 2:
+        return None, none
+    odom = np.asarray(recording.odometry.poses_xytheta, dtype=np.float64)
+    # interval k (from scan k to scan k + 1) holds the ODOM records between their lines
+    scan_lines = np.asarray(meta["line_numbers"])
+    interval = np.searchsorted(scan_lines, np.asarray(meta["odometry_line_numbers"])) - 1
+    inside = (interval >= 0) & (interval < n - 1)
+    rows = np.flatnonzero(inside)
+    k_of = interval[rows]
+    counts = np.bincount(k_of, minlength=n - 1)
+    first = np.full(n - 1, -1)
+    last = np.full(n - 1, -1)
+    first[k_of[::-1]] = rows[::-1]  # the earliest row of each interval wins
+    last[k_of] = rows  # the latest row of each interval wins
+    known = counts >= 2
+    ks = np.flatnonzero(known)
+    gap = odom[first[ks]] - scans_at[ks]
+    anchored = (np.hypot(gap[:, 0], gap[:, 1]) <= ANCHOR_TOLERANCE) & (
+        np.abs(wrap_angle_rad(gap[:, 2])) <= ANCHOR_TOLERANCE
+    )
+    known[ks[~anchored]] = False
+    n_known = int(known.sum())
+    if n_known < 0.5 * (n - 1):
+        return None, none + f"; its ODOM records give the wheel motion of {n_known} of {n - 1} steps only"
+    inc = np.zeros((n - 1, 3))
+    ks = np.flatnonzero(known)
+    inc[ks] = se2.between(odom[first[ks]], odom[last[ks]])
+    chained = np.zeros((n, 3))
+    for k in range(n - 1):  # an unknown step continues the chain (zero motion) and marks its scan NaN
+        chained[k + 1] = se2.compose(chained[k], inc[k])
+    chained[1:][~known] = np.nan
+    phrase = (
+        f"the raw wheel odometry of the corrected log's ODOM records (re-anchored at every scan): "
+        f"{n_known} of {n - 1} steps"
+        + (f", {n - 1 - n_known} without wheel records" if n_known < n - 1 else "")
+    )
+    return Trajectory(recording.scans.stamps_ns, chained, frame_id="odom"), phrase
 
 
 def read_carmen(path: str | Path, cfg: InputConfig | None = None) -> Recording:

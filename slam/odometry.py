@@ -16,8 +16,9 @@ With ``normal_check`` the refinement skips map points whose normal faces away fr
 directions the scan barely constrains (a featureless corridor's axis, ``degenerate_ratio``) keep the
 prediction and its uncertainty (:func:`remap_degenerate`). Either result is rejected -- and the wheel
 prediction used instead, with the wheel uncertainty -- when too few points match or the motion deviates
-implausibly from the wheels. Each scan gets the covariance of its registration,
-``(H / sigma^2 + Lambda_wheel)^-1`` (world frame), which the graph scales into factor noise.
+implausibly from the wheels. A gap in the wheel records (a NaN wheel pose) makes the steps around it steps
+without wheels. Each scan gets the covariance of its registration, ``(H / sigma^2 + Lambda_wheel)^-1``
+(world frame), which the graph scales into factor noise.
 """
 
 from __future__ import annotations
@@ -305,7 +306,8 @@ def run_odometry(
 ) -> OdometryResult:
     """Register every scan (list of (P_i, 2) base-frame points, in scan order) against its submap.
 
-    ``wheel_poses_xytheta`` (N, 3): the wheel odometry at each scan, or None. Returns an
+    ``wheel_poses_xytheta`` (N, 3): the wheel odometry at each scan, or None; a NaN row marks a gap in the
+    wheel records (the steps into and out of that scan are registered as without wheels). Returns an
     :class:`OdometryResult`.
     """
     n = len(points_base)
@@ -322,7 +324,8 @@ def run_odometry(
     if wheel_poses_xytheta is not None:
         wheel = np.asarray(wheel_poses_xytheta, dtype=np.float64)
         wheel_inc = se2.between(wheel[:-1], wheel[1:])
-        poses[0] = wheel[0]
+        if np.all(np.isfinite(wheel[0])):
+            poses[0] = wheel[0]
     else:
         wheel_inc = None
     last_inc = np.zeros(3)
@@ -337,10 +340,12 @@ def run_odometry(
             pts = points_base[i]
             nrm = None
             if i > 0:
-                inc = wheel_inc[i - 1] if wheel_inc is not None else last_inc
+                # a wheel increment with NaN is unknown (a gap in the wheel records): a step without wheels
+                wheels = wheel_inc is not None and bool(np.all(np.isfinite(wheel_inc[i - 1])))
+                inc = wheel_inc[i - 1] if wheels else last_inc
                 pred = se2.compose(poses[i - 1], inc)
                 cov_inc = wheel_increment_cov(inc, cfg)
-                if wheel_inc is None:
+                if not wheels:
                     cov_inc = np.diag([cfg.no_wheels_sigma_m**2] * 2 + [cfg.no_wheels_sigma_rad**2])
                 cov_pred_w = se2.rotate_cov_to_world(pred, cov_inc)
                 target = submaps.target
@@ -357,7 +362,7 @@ def run_odometry(
                         t_normals += time.perf_counter() - t0
                     t0 = time.perf_counter()
                     dense = False
-                    if wheel_inc is None:  # a constant-velocity guess: search wide, prefer the guess
+                    if not wheels:  # a constant-velocity guess: search wide, prefer the guess
                         window_m = max(cfg.search_window_m, cfg.no_wheels_window_m)
                         window_rad = max(cfg.search_window_rad, cfg.no_wheels_window_rad)
                         dense = velocity_known and short_steps >= 3
@@ -372,7 +377,7 @@ def run_odometry(
                     else:
                         # the motion prior of a wide search; none before the velocity is known
                         sigma = (math.sqrt(cov_inc[0, 0]), math.sqrt(cov_inc[2, 2]))
-                        w = cfg.search_prior_weight if wheel_inc is not None or velocity_known else 0.0
+                        w = cfg.search_prior_weight if wheels or velocity_known else 0.0
                         start = search_window(
                             target, pts, pred, window_m, window_rad, cfg.search_step_rad, sigma, w, dense
                         ).pose_xytheta
@@ -395,7 +400,7 @@ def run_odometry(
                         pose, hessian = remap_degenerate(pred, pose, al.hessian, cfg.degenerate_ratio)
                     frac = al.inliers / pts.shape[0]
                     dev = se2.between(pred, pose)
-                    if wheel_inc is not None:
+                    if wheels:
                         accepted = (
                             frac >= cfg.min_inlier_fraction
                             and math.hypot(dev[0], dev[1]) <= max(cfg.gate_xy_m, math.sqrt(2.0) * window_m)

@@ -64,13 +64,15 @@ def wheel_odometry(recording: Recording) -> tuple[Trajectory | None, str]:
     """The wheel odometry SLAM should use, and a phrase saying where it comes from.
 
     A SLAM-corrected log (``meta["corrected"]``: ``*.gfs.log``, ``*-corrected.log*``) logs its corrected
-    poses in the odometry fields of its scans and in its ODOM records (their increments equal the corrected
-    ones after every scan), so it has no wheel odometry: SLAM runs on its scans alone rather than being
-    handed the answer. Otherwise the pose logged with each scan (CARMEN's raw odometry), else the odometry
-    topic, else none.
+    poses in the odometry fields of its scans, never handed to SLAM; its ODOM records, re-anchored at every
+    scan, still hold the raw wheel motion between scans, which is used when they have it
+    (:func:`datasets.carmen.corrected_log_odometry`; else SLAM runs on the scans alone). Otherwise the pose
+    logged with each scan (CARMEN's raw odometry), else the odometry topic, else none.
     """
     if recording.meta.get("corrected"):
-        return None, "none: the log is SLAM-corrected (its odometry fields are the corrected poses)"
+        from datasets.carmen import corrected_log_odometry
+
+        return corrected_log_odometry(recording)
     if recording.scan_poses is not None and len(recording.scan_poses):
         return recording.scan_poses, "the odometry logged with each scan"
     if recording.odometry is not None and len(recording.odometry):

@@ -246,3 +246,78 @@ def test_rlaser_records(tmp_path) -> None:
     # the rear laser faces backwards: its mounting says so
     np.testing.assert_allclose(rec.laser_in_base_xytheta, [0.0, 0.0, 3.14159])
     assert rec.odometry is None
+
+
+def _flaser(pose: np.ndarray, stamp: float) -> str:
+    x, y, t = pose
+    return f"FLASER 3 1 2 3 {x} {y} {t} {x} {y} {t} {stamp} host {stamp}\n"
+
+
+def _odom(pose: np.ndarray, stamp: float) -> str:
+    x, y, t = pose
+    return f"ODOM {x} {y} {t} 0 0 0 {stamp} host {stamp}\n"
+
+
+def test_a_corrected_logs_reanchored_odom_records_give_its_wheel_odometry(tmp_path) -> None:
+    """GMapping's corrected logs re-anchor the ODOM stream at every scan (the first record repeats the
+    scan's corrected pose, the next ones add the raw wheel motion): the wheel increments between scans are
+    recovered exactly, a step without wheel records is NaN, and records that only repeat the poses give
+    none."""
+    from datasets.carmen import corrected_log_odometry
+    from datasets.se2 import between, compose
+
+    corrected = np.array(
+        [[0.0, 0.0, 0.0], [1.0, 0.1, 0.2], [2.0, 0.5, 0.3], [2.5, 1.5, 1.2], [3.0, 2.0, 1.0]]
+    )
+    raw_inc = np.array([[0.9, 0.05, 0.25], [1.1, 0.0, 0.05], [0.0, 0.0, 0.0], [0.6, 0.1, -0.1]])
+    lines, stamp = [], 1.0
+    for k in range(5):
+        lines.append(_flaser(corrected[k], stamp))
+        if k == 4:
+            break
+        lines.append(_odom(corrected[k], stamp))  # the anchor
+        if k != 2:  # interval 2 has no wheel records
+            lines.append(_odom(compose(corrected[k], raw_inc[k] / 2), stamp + 0.5))
+            lines.append(_odom(compose(corrected[k], raw_inc[k]), stamp + 0.9))
+        stamp += 1.0
+    path = tmp_path / "bldg-corrected.log"
+    path.write_text("".join(lines))
+    rec = open_dataset(path)
+    traj, phrase = corrected_log_odometry(rec)
+    assert "3 of 4 steps" in phrase and "1 without wheel records" in phrase
+    np.testing.assert_array_equal(traj.stamps_ns, rec.scans.stamps_ns)
+    poses = traj.poses_xytheta
+    np.testing.assert_allclose(poses[0], 0.0)
+    assert np.isnan(poses[3]).all() and np.isfinite(np.delete(poses, 3, axis=0)).all()
+    inc = between(poses[:-1], poses[1:])
+    np.testing.assert_allclose(inc[[0, 1]], raw_inc[[0, 1]], atol=1e-9)
+    assert not np.allclose(inc[0], between(corrected[0], corrected[1]), atol=1e-3)  # not the corrected step
+    # the chain goes on across the gap: scan 4 = scan 2 + the last known increment
+    np.testing.assert_allclose(poses[4], compose(poses[2], raw_inc[3]), atol=1e-9)
+
+    # ODOM records that only repeat the corrected poses carry no wheel motion
+    path2 = tmp_path / "poses-corrected.log"
+    path2.write_text("".join(_flaser(corrected[k], 1.0 + k) + _odom(corrected[k], 1.0 + k) for k in range(5)))
+    none, phrase2 = corrected_log_odometry(open_dataset(path2))
+    assert none is None and "0 of 4 steps" in phrase2
+
+
+def test_radish_corrected_logs_wheel_odometry() -> None:
+    """On the real logs: seattle's ODOM records hold wheel odometry (per-step differences from the
+    corrected poses of a few centimetres, not zero; one step of 240 has no wheel records), orebro's only
+    repeat the corrected poses."""
+    from datasets.carmen import corrected_log_odometry
+    from datasets.se2 import between
+
+    rec = open_dataset(data_file("radish-corrected/seattle-corrected.log.gz"))
+    traj, phrase = corrected_log_odometry(rec)
+    assert "239 of 240 steps" in phrase
+    wheel = traj.poses_xytheta
+    ok = np.isfinite(wheel).all(axis=1)
+    ok = ok[:-1] & ok[1:]
+    ref = rec.reference.poses_xytheta
+    d = between(between(ref[:-1], ref[1:])[ok], between(wheel[:-1], wheel[1:])[ok])
+    err_m = np.hypot(d[:, 0], d[:, 1])
+    assert 0.005 < np.median(err_m) < 0.05 and np.percentile(err_m, 95) < 0.1
+    orebro = open_dataset(data_file("radish-corrected/orebro-corrected.log.gz"))
+    assert corrected_log_odometry(orebro)[0] is None
