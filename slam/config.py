@@ -140,6 +140,18 @@ class OdometryConfig(BaseModel):
     wheel_sigma_xy_per_m: float = Field(0.1, ge=0, description="... plus this fraction of the travel")
     wheel_sigma_theta_rad: float = Field(0.0175, gt=0, description="wheel increment noise per scan, rotation")
     wheel_sigma_theta_per_rad: float = Field(0.2, ge=0, description="... plus this fraction of the turn")
+    retry_below_inliers: float = Field(
+        0.3,
+        ge=0,
+        le=1,
+        description="a wheel-seeded registration matching fewer of its points, or rejected by the gates, is "
+        "searched again over every heading within retry_window_rad (the wheels of a sparse log turn "
+        "10-20 deg wrong between keyframes): kept if it explains more of the scan, or if the first was "
+        "rejected and it passes the gates with that window",
+    )
+    retry_window_rad: float = Field(
+        0.5, ge=0, description="... rotational half-window of that search, without a motion prior (0: off)"
+    )
     gate_xy_m: float = Field(0.3, gt=0, description="largest accepted deviation from the wheel prediction")
     gate_theta_rad: float = Field(0.2, gt=0, description="largest accepted rotational deviation from it")
     submap_restart_fallbacks: int = Field(

@@ -14,11 +14,13 @@ increment (or, without wheels, the previous increment). Two registrations are av
 With ``normal_check`` the refinement skips map points whose normal faces away from the scan point's
 (both face their sensors): the far face of a thin wall seen earlier from the other side. Translation
 directions the scan barely constrains (a featureless corridor's axis, ``degenerate_ratio``) keep the
-prediction and its uncertainty (:func:`remap_degenerate`). Either result is rejected -- and the wheel
-prediction used instead, with the wheel uncertainty -- when too few points match or the motion deviates
-implausibly from the wheels. A gap in the wheel records (a NaN wheel pose) makes the steps around it steps
-without wheels. Each scan gets the covariance of its registration, ``(H / sigma^2 + Lambda_wheel)^-1``
-(world frame), which the graph scales into factor noise.
+prediction and its uncertainty (:func:`remap_degenerate`). A point-to-line registration that matches few
+of its points or that the gates reject is searched again over every heading within ``retry_window_rad``
+(wheels can turn 10-20 deg wrong between the keyframes of a sparse log) and the better-explaining match
+kept. Either result is rejected -- and the wheel prediction used instead, with the wheel uncertainty --
+when too few points match or the motion deviates implausibly from the wheels. A gap in the wheel records
+(a NaN wheel pose) makes the steps around it steps without wheels. Each scan gets the covariance of its
+registration, ``(H / sigma^2 + Lambda_wheel)^-1`` (world frame), which the graph scales into factor noise.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from datasets.types import ScanSequence
 from slam import geometry as se2
 from slam.config import OdometryConfig
 from slam.scan_matching import (
+    Alignment,
     PointGrid,
     SearchResult,
     branch_and_bound_search,
@@ -77,6 +80,7 @@ class OdometryResult:
     points_base: list[FloatArray]
     timings_s: dict[str, float] = field(default_factory=dict)
     submap_restarts: int = 0  # submaps started afresh after a run of rejected registrations
+    retries: int = 0  # registrations searched again over wider headings (``retry_below_inliers``)
 
     def status_counts(self) -> dict[str, int]:
         """Number of scans per status name."""
@@ -298,6 +302,38 @@ def remap_degenerate(
     return pose, proj.T @ h @ proj
 
 
+def _refine(
+    target: PointGrid,
+    points_xy: FloatArray,
+    start_xytheta: FloatArray,
+    prediction_xytheta: FloatArray,
+    prior_information: FloatArray,
+    normals_xy: FloatArray | None,
+    cfg: OdometryConfig,
+    iterate: bool,
+) -> tuple[Alignment, FloatArray, FloatArray]:
+    """Point-to-line refinement of ``start`` with the prediction as prior (``iterate`` False: the start's
+    information only, as for KISS-ICP's result), then the degenerate directions kept where the prediction
+    puts them. Returns ``(alignment, pose (3,), information (3, 3))``."""
+    al = refine_point_to_line(
+        target,
+        points_xy,
+        start_xytheta,
+        max_dist_m=cfg.max_correspondence_m,
+        kernel_m=cfg.kernel_m,
+        point_sigma_m=cfg.point_sigma_m,
+        prior_xytheta=prediction_xytheta,
+        prior_information=prior_information,
+        max_iterations=30 if iterate else 0,
+        normals_xy=normals_xy,
+    )
+    if not iterate:
+        return al, np.asarray(start_xytheta, dtype=np.float64), al.hessian
+    if cfg.degenerate_ratio > 0:
+        return (al, *remap_degenerate(prediction_xytheta, al.pose_xytheta, al.hessian, cfg.degenerate_ratio))
+    return al, al.pose_xytheta, al.hessian
+
+
 def run_odometry(
     points_base: list[FloatArray],
     wheel_poses_xytheta: FloatArray | None,
@@ -333,6 +369,7 @@ def run_odometry(
     fallback_run = 0  # consecutive rejected registrations
     short_steps = 0  # consecutive registered steps within no_wheels_dense_step_*
     restarts = 0
+    retries = 0
     last_insert: FloatArray | None = None
     chunk = max(1, n // 200)
     with stage(progress, "odometry", n) as bar:
@@ -371,7 +408,10 @@ def run_odometry(
                             window_rad = min(window_rad, cfg.no_wheels_dense_window_rad)
                     else:  # the window covers 3 sigma of the wheel increment (sparse logs: ~1 m steps)
                         window_m = max(cfg.search_window_m, 3.0 * math.sqrt(cov_inc[0, 0]))
-                        window_rad = cfg.search_window_rad + 0.3 * abs(inc[2])
+                        # ... in rotation too (at least the fixed window plus 30 % of the turn)
+                        window_rad = max(
+                            cfg.search_window_rad + 0.3 * abs(inc[2]), 3.0 * math.sqrt(cov_inc[2, 2])
+                        )
                     if kiss is not None:
                         start = kiss.align(pts, pred)
                     else:
@@ -382,22 +422,7 @@ def run_odometry(
                             target, pts, pred, window_m, window_rad, cfg.search_step_rad, sigma, w, dense
                         ).pose_xytheta
                     prior_info = np.linalg.inv(cov_pred_w)
-                    al = refine_point_to_line(
-                        target,
-                        pts,
-                        start,
-                        max_dist_m=cfg.max_correspondence_m,
-                        kernel_m=cfg.kernel_m,
-                        point_sigma_m=cfg.point_sigma_m,
-                        prior_xytheta=pred,
-                        prior_information=prior_info,
-                        max_iterations=0 if kiss is not None else 30,
-                        normals_xy=nrm,
-                    )
-                    pose = start if kiss is not None else al.pose_xytheta
-                    hessian = al.hessian
-                    if kiss is None and cfg.degenerate_ratio > 0:
-                        pose, hessian = remap_degenerate(pred, pose, al.hessian, cfg.degenerate_ratio)
+                    al, pose, hessian = _refine(target, pts, start, pred, prior_info, nrm, cfg, kiss is None)
                     frac = al.inliers / pts.shape[0]
                     dev = se2.between(pred, pose)
                     if wheels:
@@ -409,6 +434,35 @@ def run_odometry(
                     else:  # the guess is no fallback: a match better than chance is kept
                         reach_m = math.sqrt(2.0) * window_m + cfg.gate_xy_m
                         accepted = frac >= cfg.no_wheels_min_inliers and math.hypot(dev[0], dev[1]) <= reach_m
+                    if (
+                        wheels
+                        and kiss is None
+                        and (frac < cfg.retry_below_inliers or not accepted)
+                        and window_rad < cfg.retry_window_rad
+                    ):
+                        # a poor match or a rejected one: the wheels may have turned wrong by more than the
+                        # window (sparse logs: 10-20 deg between keyframes); search every heading within
+                        # retry_window_rad, without a prior, and keep that match if it explains more of the
+                        # scan, or if it passes the gates (rotation: that window) where the first did not
+                        wide = search_window(
+                            target,
+                            pts,
+                            pred,
+                            max(window_m, cfg.search_window_m),
+                            cfg.retry_window_rad,
+                            cfg.search_step_rad,
+                        ).pose_xytheta
+                        al2, pose2, hessian2 = _refine(target, pts, wide, pred, prior_info, nrm, cfg, True)
+                        frac2 = al2.inliers / pts.shape[0]
+                        dev2 = se2.between(pred, pose2)
+                        if (
+                            frac2 >= cfg.min_inlier_fraction
+                            and (frac2 > frac or not accepted)
+                            and math.hypot(dev2[0], dev2[1]) <= max(cfg.gate_xy_m, math.sqrt(2.0) * window_m)
+                            and abs(dev2[2]) <= cfg.retry_window_rad
+                        ):
+                            al, pose, hessian, frac, accepted = al2, pose2, hessian2, frac2, True
+                        retries += 1
                     t_match += time.perf_counter() - t0
                     inliers[i] = frac
                     rms[i] = al.rms_m
@@ -477,4 +531,4 @@ def run_odometry(
         if n % chunk:
             bar.advance(n % chunk)
     timings = {"odometry_match_s": t_match, "odometry_insert_s": t_insert, "odometry_normals_s": t_normals}
-    return OdometryResult(poses, covs, status, inliers, rms, points_base, timings, restarts)
+    return OdometryResult(poses, covs, status, inliers, rms, points_base, timings, restarts, retries)

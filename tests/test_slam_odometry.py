@@ -192,3 +192,27 @@ def test_a_gap_in_the_wheel_records_is_a_step_without_wheels() -> None:
     zero[4:, 0] -= 0.6
     odo_zero = run_odometry(pts, zero, OdometryConfig())
     assert np.abs(se2.between(odo_zero.poses_xytheta[3], odo_zero.poses_xytheta[4])[0] - 0.6) > 0.1
+
+
+def test_wheels_turned_wrong_by_more_than_the_window_are_searched_again() -> None:
+    """A keyframe step whose wheel rotation is 15 deg wrong (belgioioso's wheels err so between keyframes):
+    the window around the wheels cannot reach the truth, the retry over +-0.5 rad finds it. Without the
+    retry the step keeps the wheels' heading."""
+    rng = np.random.default_rng(2)
+    ang = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    room = np.stack([6 * np.cos(ang), 4 * np.sin(ang) + 0.5 * np.cos(3 * ang)], axis=1)
+    truth = np.column_stack([0.3 * np.arange(8), np.zeros(8), np.zeros(8)])
+
+    def seen_from(pose: np.ndarray) -> np.ndarray:  # the room in the base frame at ``pose``
+        return se2.transform_points(se2.inverse(pose), room) + rng.normal(0, 0.005, room.shape)
+
+    pts = [seen_from(truth[i]) for i in range(8)]
+    wheel = truth.copy()
+    wheel[5:, 2] += np.radians(15.0)  # the wheels turn 15 deg between scans 4 and 5
+    odo = run_odometry(pts, wheel, OdometryConfig())
+    assert odo.retries >= 1
+    assert odo.status_counts()["matched"] == 7
+    assert abs(np.degrees(se2.between(truth[4], odo.poses_xytheta[5])[2])) < 0.5
+    plain = run_odometry(pts, wheel, OdometryConfig(retry_window_rad=0.0))
+    assert plain.retries == 0
+    assert abs(np.degrees(se2.between(truth[4], plain.poses_xytheta[5])[2])) > 5.0
