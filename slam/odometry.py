@@ -408,10 +408,7 @@ def run_odometry(
                             window_rad = min(window_rad, cfg.no_wheels_dense_window_rad)
                     else:  # the window covers 3 sigma of the wheel increment (sparse logs: ~1 m steps)
                         window_m = max(cfg.search_window_m, 3.0 * math.sqrt(cov_inc[0, 0]))
-                        # ... in rotation too (at least the fixed window plus 30 % of the turn)
-                        window_rad = max(
-                            cfg.search_window_rad + 0.3 * abs(inc[2]), 3.0 * math.sqrt(cov_inc[2, 2])
-                        )
+                        window_rad = cfg.search_window_rad + 0.3 * abs(inc[2])
                     if kiss is not None:
                         start = kiss.align(pts, pred)
                     else:
