@@ -255,6 +255,13 @@ def main(argv: list[str] | None = None) -> int:
         return _interrupted(signal.SIGTERM)
     except KeyboardInterrupt:
         return _interrupted(signal.SIGINT)
+    except Exception:
+        # a signal's exception raised inside a C callback comes back wrapped (numba's cache loader:
+        # "SystemError: ... returned a result with an exception set"); the recorded signal still decides
+        pending = pending_interrupt()
+        if pending is None:
+            raise
+        return _interrupted(pending)
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)

@@ -359,6 +359,25 @@ def test_an_interrupt_python_dropped_still_stops_the_run(tmp_path, monkeypatch, 
 
     assert pending_interrupt() is None  # main() leaves nothing pending behind it
 
+    def wrapped_by_c(args, emit_json):  # a Ctrl-C landing in numba's cache loader (a CI run saw it)
+        note_interrupt(signal.SIGINT)
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise SystemError("_numba_unpickle returned a result with an exception set") from exc
+
+    monkeypatch.setattr("pipeline.commands.dispatch", wrapped_by_c)
+    assert run.main(["bench"]) == 130
+    assert capsys.readouterr().err.strip() == "interrupted"
+    assert pending_interrupt() is None
+
+    def plain_bug(args, emit_json):  # without a signal, an unexpected error still escapes as itself
+        raise SystemError("a bug")
+
+    monkeypatch.setattr("pipeline.commands.dispatch", plain_bug)
+    with pytest.raises(SystemError, match="a bug"):
+        run.main(["bench"])
+
 
 @pytest.mark.parametrize("resolution_m", [1e-300, 1e-320])
 def test_absurdly_fine_resolutions_are_one_line_errors(resolution_m: float) -> None:
