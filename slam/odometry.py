@@ -422,10 +422,11 @@ def run_odometry(
                     al, pose, hessian = _refine(target, pts, start, pred, prior_info, nrm, cfg, kiss is None)
                     frac = al.inliers / pts.shape[0]
                     dev = se2.between(pred, pose)
+                    gate_xy_m = max(cfg.gate_xy_m, math.sqrt(2.0) * window_m)
                     if wheels:
                         accepted = (
                             frac >= cfg.min_inlier_fraction
-                            and math.hypot(dev[0], dev[1]) <= max(cfg.gate_xy_m, math.sqrt(2.0) * window_m)
+                            and math.hypot(dev[0], dev[1]) <= gate_xy_m
                             and abs(dev[2]) <= max(cfg.gate_theta_rad, window_rad)
                         )
                     else:  # the guess is no fallback: a match better than chance is kept
@@ -442,12 +443,7 @@ def run_odometry(
                         # retry_window_rad, without a prior, and keep that match if it explains more of the
                         # scan, or if it passes the gates (rotation: that window) where the first did not
                         wide = search_window(
-                            target,
-                            pts,
-                            pred,
-                            max(window_m, cfg.search_window_m),
-                            cfg.retry_window_rad,
-                            cfg.search_step_rad,
+                            target, pts, pred, window_m, cfg.retry_window_rad, cfg.search_step_rad
                         ).pose_xytheta
                         al2, pose2, hessian2 = _refine(target, pts, wide, pred, prior_info, nrm, cfg, True)
                         frac2 = al2.inliers / pts.shape[0]
@@ -455,7 +451,7 @@ def run_odometry(
                         if (
                             frac2 >= cfg.min_inlier_fraction
                             and (frac2 > frac or not accepted)
-                            and math.hypot(dev2[0], dev2[1]) <= max(cfg.gate_xy_m, math.sqrt(2.0) * window_m)
+                            and math.hypot(dev2[0], dev2[1]) <= gate_xy_m
                             and abs(dev2[2]) <= cfg.retry_window_rad
                         ):
                             al, pose, hessian, frac, accepted = al2, pose2, hessian2, frac2, True
