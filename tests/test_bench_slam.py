@@ -13,6 +13,8 @@ def test_bench_slam_reports_each_log_and_the_loop_search_share() -> None:
     out = bench_slam(logs=(("seattle", data_file("radish-corrected/seattle-corrected.log.gz")),))
     assert out["odometry_scans_per_s"] == out["slam_seattle_odometry_scans_per_s"] > 0
     assert out["slam_seattle_scans"] == 241
+    # the wheels SLAM runs on are those run would use: the ODOM records' raw motion, not the corrected poses
+    assert "re-anchored" in out["slam_seattle_wheel_odometry"]
     assert out["slam_seattle_keyframes"] > 0 and out["slam_seattle_loop_closures"] >= 0
     wall, duration = out["slam_seattle_wall_s"], out["slam_seattle_data_duration_s"]
     assert wall > 0 and duration > 0

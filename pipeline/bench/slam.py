@@ -11,7 +11,9 @@ log NAME:
 - ``slam_NAME_breakdown_s``: every other entry of ``timings_s`` (sub-stage wall times, s; the
   ``odometry_*_s`` entries are parts of ``odometry_s``);
 - ``slam_NAME_odometry_scans_per_s``, ``slam_NAME_scans``, ``slam_NAME_keyframes``,
-  ``slam_NAME_loop_closures``.
+  ``slam_NAME_loop_closures``; ``slam_NAME_wheel_odometry``: where SLAM's wheel odometry came from (the
+  choice of :func:`slam.system.wheel_odometry`, as in ``run``: a corrected log's poses are never handed
+  over).
 
 ``odometry_scans_per_s`` (a SPEC key) is intel's. Timings depend on the machine's load.
 """
@@ -26,7 +28,7 @@ from datasets.paths import SHARED_DATA_DIR
 from datasets.registry import open_dataset
 from pipeline.config import load_config
 from pipeline.progress import Progress
-from slam.system import run_slam
+from slam.system import run_slam_recording
 
 DATA = SHARED_DATA_DIR
 INTEL = DATA / "intel" / "intel.clf.bz2"
@@ -55,9 +57,8 @@ def bench_slam_log(path: str | Path, progress: Progress | None = None) -> dict[s
     prefix)."""
     config = load_config()
     rec = open_dataset(path, config.input)
-    wheel = rec.scan_poses if rec.scan_poses is not None else rec.odometry
     t0 = time.perf_counter()
-    result = run_slam(rec.scans, wheel, rec.laser_in_base_xytheta, config.slam, progress)
+    result = run_slam_recording(rec, config.slam, progress)
     wall_s = time.perf_counter() - t0
     stamps = rec.scans.stamps_ns
     duration_s = float(stamps[-1] - stamps[0]) / 1e9
@@ -77,4 +78,5 @@ def bench_slam_log(path: str | Path, progress: Progress | None = None) -> dict[s
         "scans": len(rec.scans),
         "keyframes": len(result.keyframe_scans),
         "loop_closures": len(result.loop_closures),
+        "wheel_odometry": result.wheel_odometry,
     }
