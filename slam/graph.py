@@ -208,6 +208,40 @@ class PoseGraph:
             self._restart_with_qr()
             return np.asarray(self._isam.marginalCovariance(key))
 
+    def relative_covs_body(self, keys_from: list[int], key_to: int) -> FloatArray:
+        """(len(keys_from), 3, 3) covariances of ``between(x_from, x_to)`` in ``x_to``'s body frame, from
+        iSAM2's joint marginal of the keyframes (one call for all): the correlation that the shared
+        odometry chain and the loop closures between them put there makes it far smaller than the sum of
+        their marginals once loops close.
+
+        With ``x = X Exp(a)`` (GTSAM's right perturbation) the relative pose ``D = X_from^-1 X_to`` moves by
+        ``b - Ad(D^-1) a``: ``S = M S_ff M^T + M S_ft + S_tf M^T + S_tt`` with ``M = -Ad(D^-1)``.
+        """
+        keys = [int(k) for k in keys_from]
+        if not keys:
+            return np.zeros((0, 3, 3))
+
+        def joint() -> gtsam.JointMarginal:
+            return self._isam.jointMarginalCovariance(sorted({*keys, int(key_to)}))
+
+        try:
+            jm = joint()
+        except RuntimeError:
+            if self.factorization == "QR":
+                raise
+            self._restart_with_qr()
+            jm = joint()
+        x_to = self.estimate_of(key_to)
+        s_tt = np.asarray(jm.at(key_to, key_to))
+        out = np.empty((len(keys), 3, 3))
+        for i, key in enumerate(keys):
+            s_ff = np.asarray(jm.at(key, key))
+            s_ft = np.asarray(jm.at(key, key_to))
+            m = -se2.adjoint(se2.inverse(se2.between(self.estimate_of(key), x_to)))
+            cov = m @ s_ff @ m.T + m @ s_ft + s_ft.T @ m.T + s_tt
+            out[i] = 0.5 * (cov + cov.T)
+        return out
+
     def set_estimate(self, poses_xytheta: FloatArray) -> None:
         """Replace the current estimate (K, 3) (the batch optimiser starts from it)."""
         values = gtsam.Values()

@@ -169,3 +169,61 @@ def test_a_loose_factor_between_tight_ones_falls_back_to_qr_instead_of_raising()
     marg = g.marginals_body()
     assert np.all(np.linalg.eigvalsh(marg) > 0)
     assert marg[19, 0, 0] < 1e-4 < 1.0 < marg[20, 0, 0]  # the loose factor's 2 m shows after it
+
+
+def _chain(prior_cov: np.ndarray, closure_cov: np.ndarray | None) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+    """A curved six-step chain (increments of different noise), optionally one exact closure 1 -> 5."""
+    inc = np.array([[1.0, 0.1, 0.3], [0.8, -0.2, 0.5], [1.2, 0.0, -0.4], [0.5, 0.3, 0.9], [1.0, 0.0, 0.2]])
+    covs = np.stack([np.diag([0.05 * (i + 1), 0.03, 0.01 * (i + 1)]) ** 2 for i in range(len(inc))])
+    poses = se2.chain(np.array([2.0, -1.0, 0.4]), inc)
+    g = PoseGraph()
+    for p in poses:
+        g.add_pose(p)
+    g.add_prior(0, poses[0], prior_cov)
+    for i in range(len(inc)):
+        g.add_between("odometry", i, i + 1, inc[i], covs[i])
+    if closure_cov is not None:
+        g.add_between("loop", 1, 5, se2.between(poses[1], poses[5]), closure_cov)
+    g.update()
+    return g, inc, covs
+
+
+def test_relative_covariance_is_the_chain_between_the_two_keyframes() -> None:
+    """Without a loop, the uncertainty of the relative pose 1 -> 4 is that of the odometry between them
+    (compounded in 4's frame), whatever the prior on the first pose; the sum of the two marginals, which
+    ignores their correlation, is larger."""
+    tight, inc, covs = _chain(np.diag([1e-6, 1e-6, 1e-8]) ** 2, None)
+    loose, _, _ = _chain(np.diag([5.0, 5.0, 1.0]) ** 2, None)
+    # the chain 1 -> 4 anchored exactly at 1: its last marginal is the relative covariance
+    anchored = PoseGraph()
+    poses = se2.chain(np.zeros(3), inc[1:4])
+    for p in poses:
+        anchored.add_pose(p)
+    anchored.add_prior(0, poses[0], np.diag([1e-9, 1e-9, 1e-11]) ** 2)
+    for i in range(3):
+        anchored.add_between("odometry", i, i + 1, inc[1 + i], covs[1 + i])
+    anchored.update()
+    expected = anchored.marginal_body(3)
+    for g in (tight, loose):
+        np.testing.assert_allclose(g.relative_covs_body([1], 4)[0], expected, rtol=1e-5, atol=1e-12)
+    summed = se2.rotate_cov_to_body(
+        loose.estimate_of(4),
+        se2.rotate_cov_to_world(loose.estimate_of(1), loose.marginal_body(1))
+        + se2.rotate_cov_to_world(loose.estimate_of(4), loose.marginal_body(4)),
+    )
+    assert np.linalg.eigvalsh(summed - expected).min() > 0
+
+
+def test_relative_covariance_fuses_a_closure_with_the_chain() -> None:
+    """A closure 1 -> 5 with covariance C and the chain's P measure the same relative pose (5's frame):
+    the joint marginal gives (P^-1 + C^-1)^-1."""
+    closure = np.diag([0.02, 0.04, 0.005]) ** 2
+    open_chain, _, _ = _chain(np.diag([5.0, 5.0, 1.0]) ** 2, None)
+    closed, _, _ = _chain(np.diag([5.0, 5.0, 1.0]) ** 2, closure)
+    p = open_chain.relative_covs_body([1], 5)[0]
+    fused = np.linalg.inv(np.linalg.inv(p) + np.linalg.inv(closure))
+    np.testing.assert_allclose(closed.relative_covs_body([1, 3], 5)[0], fused, rtol=1e-5, atol=1e-12)
+    # one joint marginal for several keyframes gives each pair what a call of its own gives
+    np.testing.assert_allclose(
+        closed.relative_covs_body([1, 3], 5)[1], closed.relative_covs_body([3], 5)[0], rtol=1e-9, atol=1e-15
+    )
