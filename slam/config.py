@@ -184,17 +184,18 @@ class LoopClosureConfig(BaseModel):
         2.0, ge=0, description="keyframes this far apart can still see each other"
     )
     search_cov_inflation: float = Field(
-        10.0,
+        30.0,
         ge=1,
-        description="the candidate gate and search window use the marginals times this, or times the "
-        "running variance factor if larger (a generous search; verification decides)",
+        description="the candidate gate (on the two marginals) and the search window (on the relative "
+        "pose's joint-marginal covariance) use them times this, or times the running variance factor if "
+        "larger (a generous search; verification decides)",
     )
     gate_chi2: float = Field(9.21, gt=0, description="Mahalanobis gate of candidates (chi2 2 dof, 99%)")
     max_distance_m: float = Field(
         15.0,
         gt=0,
-        description="candidates farther than this in the current estimate are not searched (their views "
-        "overlap little, and a search window centred on them rarely reaches the truth)",
+        description="a candidate is searched when its search window can bring it within this distance "
+        "of the query (farther, their views overlap little)",
     )
     max_candidates: int = Field(3, ge=1, le=50, description="candidates matched per keyframe, nearest first")
     max_accepted_per_keyframe: int = Field(1, ge=1, le=50, description="stop after this many accepted")
@@ -224,7 +225,12 @@ class LoopClosureConfig(BaseModel):
     query_keyframes: int = Field(2, ge=0, le=100, description="previous keyframes merged into the query scan")
     window_sigmas: float = Field(3.0, gt=0, description="search half-window in standard deviations")
     min_window_m: float = Field(0.3, ge=0, description="smallest translational search half-window")
-    max_window_m: float = Field(6.0, gt=0, description="largest translational search half-window")
+    max_window_m: float = Field(
+        20.0,
+        gt=0,
+        description="largest translational search half-window (after a long loop the truth can lie "
+        "this far from the prediction)",
+    )
     min_window_rad: float = Field(0.1, ge=0, description="smallest rotational search half-window")
     max_window_rad: float = Field(0.6, gt=0, description="largest rotational search half-window")
     search_step_rad: float = Field(

@@ -3,7 +3,11 @@
 For a new keyframe ``k`` (the *query*), earlier keyframes ``j`` (the *targets*) are candidates when
 (1) the robot travelled at least ``min_separation_m`` between them and (2) their positions are compatible
 with the current marginals: ``dp^T (S_k + S_j + r^2 I)^-1 dp <= gate_chi2`` (2 dof, ``r`` the radius within
-which two keyframes still see the same place). The nearest candidates are matched:
+which two keyframes still see the same place; the sum of the marginals bounds the relative uncertainty from
+above). The nearest candidates are matched when their search window -- set by the covariance of the relative
+pose itself, from the joint marginal of the two keyframes (:meth:`slam.graph.PoseGraph.relative_covs_body`),
+small where closures already tie them together and wide after a long loop -- can bring them within
+``max_distance_m`` of the query:
 
 - the query is the keyframe's scan merged with the scans since ``query_keyframes`` earlier keyframes (in
   the keyframe's frame through the odometry, locally accurate), thinned to one point per voxel;
@@ -85,6 +89,14 @@ def voxel_thin(points_xy: FloatArray, voxel_m: float) -> NDArray[np.int64]:
     keys = cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]
     _, first = np.unique(keys, return_index=True)
     return np.sort(first)
+
+
+def _sigmas(cov: FloatArray) -> tuple[float, float]:
+    """The largest translational and the rotational standard deviation of a (3, 3) covariance."""
+    return (
+        math.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)),
+        math.sqrt(max(cov[2, 2], 0.0)),
+    )
 
 
 class LoopCloser:
@@ -228,7 +240,7 @@ class LoopCloser:
         dp = estimate[js, :2] - estimate[k, :2]
         s = cov_world[js, :2, :2] + cov_world[k, :2, :2] + cfg.overlap_radius_m**2 * np.eye(2)
         d2 = np.einsum("ni,nij,nj->n", dp, np.linalg.inv(s), dp)
-        ok = (d2 <= cfg.gate_chi2) & (np.hypot(dp[:, 0], dp[:, 1]) <= cfg.max_distance_m)
+        ok = (d2 <= cfg.gate_chi2) & (np.hypot(dp[:, 0], dp[:, 1]) <= cfg.max_distance_m + cfg.max_window_m)
         order = np.argsort(d2[ok])[: cfg.max_candidates]
         return [(int(js[ok][i]), float(d2[ok][i])) for i in order]
 
@@ -247,10 +259,8 @@ class LoopCloser:
         # the relative uncertainty in j's frame
         r = se2.rot3(-estimate[j, 2])
         cov_rel = r @ cov_rel_world @ r.T
-        sig_xy = math.sqrt(max(np.linalg.eigvalsh(cov_rel[:2, :2]).max(), 0.0))
-        sig_th = math.sqrt(max(cov_rel[2, 2], 0.0))
-        win_xy = float(np.clip(cfg.window_sigmas * sig_xy, cfg.min_window_m, cfg.max_window_m))
-        win_th = float(np.clip(cfg.window_sigmas * sig_th, cfg.min_window_rad, cfg.max_window_rad))
+        sig_xy, sig_th = _sigmas(cov_rel)
+        win_xy, win_th = self.window(cov_rel_world)
         pts = self.query_points(k) if query is None else query
         grid = self.target_grid(j)
 
@@ -275,6 +285,22 @@ class LoopCloser:
         if found.score <= 0.0:
             return reject("low score", pred, 0.0, 0.0, math.inf, math.nan)
         return self._verify(k, j, found.pose_xytheta, found.score, pred, cov_rel, pts, grid, win_xy, win_th)
+
+    def within_reach(self, k: int, j: int, estimate: FloatArray, win_xy_m: float) -> bool:
+        """Whether a search window of half-width ``win_xy_m`` can bring target ``j`` within
+        ``max_distance_m`` of keyframe ``k`` (farther, their views overlap little)."""
+        d = float(np.hypot(*(estimate[j, :2] - estimate[k, :2])))
+        return d - win_xy_m <= self.cfg.max_distance_m
+
+    def window(self, cov_rel_world: FloatArray) -> tuple[float, float]:
+        """The search half-windows ``(m, rad)`` for a relative pose of covariance ``cov_rel_world`` (3, 3):
+        ``window_sigmas`` standard deviations (the largest translational one), clipped to the configured
+        bounds (a rotation of the covariance changes neither)."""
+        cfg = self.cfg
+        sig_xy, sig_th = _sigmas(cov_rel_world)
+        win_xy = float(np.clip(cfg.window_sigmas * sig_xy, cfg.min_window_m, cfg.max_window_m))
+        win_th = float(np.clip(cfg.window_sigmas * sig_th, cfg.min_window_rad, cfg.max_window_rad))
+        return win_xy, win_th
 
     def nearby(self, k: int, estimate: FloatArray, radius_m: float, exclude: set[int]) -> list[int]:
         """Target anchors at least ``min_separation_m`` of travel before keyframe ``k`` whose estimated

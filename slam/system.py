@@ -180,10 +180,16 @@ def run_slam(
                 found = []
                 query = None
                 gate_scale = max(scale, lc.search_cov_inflation)
-                for j, _d2 in closer.candidates(k, est, cov_w * gate_scale):
+                js = [j for j, _d2 in closer.candidates(k, est, cov_w * gate_scale)]
+                # the relative poses' own uncertainty (joint marginals): far below the sum of the two
+                # marginals once loops tie k and j together, so the search windows shrink with it
+                rel_covs = se2.rotate_cov_to_world(est[k], graph.relative_covs_body(js, k)) * gate_scale
+                for j, cov_rel_w in zip(js, rel_covs, strict=True):
+                    if not closer.within_reach(k, j, est, closer.window(cov_rel_w)[0]):
+                        continue
                     if query is None:
                         query = closer.query_points(k)
-                    closure = closer.match(k, j, est, (cov_w[k] + cov_w[j]) * gate_scale, query)
+                    closure = closer.match(k, j, est, cov_rel_w, query)
                     (found if closure.accepted else rejected).append(closure)
                     if len(found) >= lc.max_accepted_per_keyframe:
                         break
