@@ -225,12 +225,15 @@ class PoseGraph:
             return self._isam.jointMarginalCovariance(sorted({*keys, int(key_to)}))
 
         try:
-            jm = joint()
-        except RuntimeError:
-            if self.factorization == "QR":
-                raise
-            self._restart_with_qr()
-            jm = joint()
+            try:
+                jm = joint()
+            except RuntimeError:
+                if self.factorization == "QR":
+                    raise
+                self._restart_with_qr()
+                jm = joint()
+        except RuntimeError as exc:
+            raise PoseGraphError(f"pose graph joint marginals: {_first_line(exc)}") from None
         x_to = self.estimate_of(key_to)
         s_tt = np.asarray(jm.at(key_to, key_to))
         out = np.empty((len(keys), 3, 3))

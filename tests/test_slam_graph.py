@@ -164,6 +164,9 @@ def test_a_loose_factor_between_tight_ones_falls_back_to_qr_instead_of_raising()
         g.add_between("odometry", k - 1, k, np.array([0.5, 0.0, 0.0]), cov)
         g.update()
     assert g.factorization == "QR"
+    # the relative covariances work on the QR graph too: across the loose factor metres, past it millimetres
+    rel = g.relative_covs_body([19, 21], 39)
+    assert rel[0, 0, 0] > 1.0 > 1e-4 > rel[1, 0, 0]
     est = g.optimize_batch()
     np.testing.assert_allclose(est[-1], [19.5, 0.0, 0.0], atol=1e-6)
     marg = g.marginals_body()
