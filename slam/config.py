@@ -231,6 +231,16 @@ class LoopClosureConfig(BaseModel):
         description="largest translational search half-window (after a long loop the truth can lie "
         "this far from the prediction)",
     )
+    wide_window_m: float = Field(
+        6.0, ge=0, description="a search whose translational half-window exceeds this is a wide one"
+    )
+    wide_min_score: float = Field(
+        0.4,
+        ge=0,
+        le=1,
+        description="least mean correlative score of a wide search (it tries many more poses, so a wrong "
+        "alignment scores higher by chance: a 20 m window put a hospital's corridor end on another)",
+    )
     min_window_rad: float = Field(0.1, ge=0, description="smallest rotational search half-window")
     max_window_rad: float = Field(0.6, gt=0, description="largest rotational search half-window")
     search_step_rad: float = Field(

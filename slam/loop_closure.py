@@ -270,6 +270,8 @@ class LoopCloser:
         if pts.shape[0] < self.odo_cfg.min_points or len(grid) < self.odo_cfg.min_points:
             return reject("too few points")
         stride = max(1, math.ceil(pts.shape[0] / cfg.search_max_points))
+        # a wide window tries many more poses, so a wrong alignment scores higher there by chance
+        min_score = cfg.min_score if win_xy <= cfg.wide_window_m else max(cfg.min_score, cfg.wide_min_score)
         found = branch_and_bound_search(
             self.target_pyramid(j),
             pts[::stride],
@@ -277,7 +279,7 @@ class LoopCloser:
             win_xy,
             win_th,
             cfg.search_step_rad,
-            min_score=cfg.min_score,
+            min_score=min_score,
             prior_sigma_xy_m=max(sig_xy, 1e-3),
             prior_sigma_theta_rad=max(sig_th, 1e-4),
             prior_weight=cfg.search_prior_weight,

@@ -112,3 +112,18 @@ def test_search_windows_follow_the_relative_uncertainty(loop_run) -> None:
     # measured: 13.1 m, then 0.3 m for every later closure (seeds 0 / 1 / 2)
     assert first.window_xy_m > 6.0
     assert rest and max(c.window_xy_m for c in rest) <= 1.0
+
+
+def test_a_wide_search_needs_the_wide_min_score() -> None:
+    """A wide window tries many more poses, so it must score ``wide_min_score``: set to 1 (unreachable), the
+    loop world's wide first closure is no longer accepted, and no wide closure is (a 20 m window once put a
+    hospital's corridor end onto another, at score 0.32)."""
+    rec = make_world("loop", 0).recording
+    cfg = SlamConfig()
+    lc = cfg.loop_closure.model_copy(update={"wide_min_score": 1.0})
+    strict = cfg.model_copy(update={"loop_closure": lc})
+    result = run_slam(rec.scans, rec.odometry, rec.laser_in_base_xytheta, strict)
+    wide = cfg.loop_closure.wide_window_m
+    assert not [c for c in result.loop_closures if c.window_xy_m > wide]
+    rejected = result.rejected_loop_closures
+    assert any(c.window_xy_m > wide and c.reason.startswith("low score") for c in rejected)
