@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import threading
@@ -215,10 +216,26 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised like Ctrl-C so that every stage unwinds the same way (no partial run folder left)."""
 
 
-def _on_signal(signum: int, frame: object) -> None:
+def _in_finaliser(frame: Any) -> bool:
+    """Whether ``frame`` or one of its callers is a ``__del__`` (Python drops, and prints with a traceback,
+    an exception raised there: numba's code generator finalises LLVM objects)."""
+    while frame is not None:
+        if frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _on_signal(signum: int, frame: Any) -> None:
     from pipeline.run_folder import note_interrupt
 
-    note_interrupt(signum)  # kept even if Python drops the exception below (raised inside a finaliser)
+    note_interrupt(signum)  # kept even if Python drops the exception below (raised inside a callback)
+    if _in_finaliser(frame):
+        # sent again shortly, from a thread: raised once the finaliser has returned
+        timer = threading.Timer(0.02, os.kill, (os.getpid(), signum))
+        timer.daemon = True
+        timer.start()
+        return
     raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
 

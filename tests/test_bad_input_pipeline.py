@@ -388,3 +388,35 @@ def test_absurdly_fine_resolutions_are_one_line_errors(resolution_m: float) -> N
     with pytest.raises(PipelineError, match=r"cells") as info:
         check_map_cells((0.0, 0.0, 100.0, 50.0), resolution_m, 50_000_000, "the map")
     assert "\n" not in str(info.value) and len(str(info.value)) < 300
+
+
+def test_a_signal_inside_a_finaliser_is_raised_after_it(capsys) -> None:
+    """A Ctrl-C that lands in a ``__del__`` (numba's code generator finalises LLVM objects; a CI run saw
+    "Exception ignored in: <function ObjectRef.__del__ ...>" and a traceback) is raised in the code that
+    the finaliser interrupted, once it returns, instead of being printed and dropped there."""
+    import os
+    import signal
+
+    import run
+    from pipeline.run_folder import note_interrupt
+
+    class Finalised:
+        def __del__(self) -> None:
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(10_000):  # bytecode boundaries inside the finaliser, where the handler runs
+                pass
+
+    import time
+
+    previous = signal.signal(signal.SIGINT, run._on_signal)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            obj = Finalised()
+            del obj
+            end = time.monotonic() + 5.0
+            while time.monotonic() < end:  # the signal is raised here
+                pass
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        note_interrupt(None)
+    assert "Exception ignored" not in capsys.readouterr().err
