@@ -198,15 +198,20 @@ class PoseGraph:
         p = self._estimate.atPose2(key)
         return np.array([p.x(), p.y(), p.theta()])
 
-    def marginal_body(self, key: int) -> FloatArray:
-        """(3, 3) iSAM2 marginal covariance of one keyframe, body frame."""
+    def _with_qr_retry(self, query):
+        """``query()`` on the current iSAM2; if Cholesky refuses, once more after switching to QR (QR's own
+        failure propagates)."""
         try:
-            return np.asarray(self._isam.marginalCovariance(key))
+            return query()
         except RuntimeError:
             if self.factorization == "QR":
                 raise
             self._restart_with_qr()
-            return np.asarray(self._isam.marginalCovariance(key))
+            return query()
+
+    def marginal_body(self, key: int) -> FloatArray:
+        """(3, 3) iSAM2 marginal covariance of one keyframe, body frame."""
+        return np.asarray(self._with_qr_retry(lambda: self._isam.marginalCovariance(key)))
 
     def relative_covs_body(self, keys_from: list[int], key_to: int) -> FloatArray:
         """(len(keys_from), 3, 3) covariances of ``between(x_from, x_to)`` in ``x_to``'s body frame, from
@@ -221,17 +226,8 @@ class PoseGraph:
         if not keys:
             return np.zeros((0, 3, 3))
 
-        def joint() -> gtsam.JointMarginal:
-            return self._isam.jointMarginalCovariance(sorted({*keys, int(key_to)}))
-
         try:
-            try:
-                jm = joint()
-            except RuntimeError:
-                if self.factorization == "QR":
-                    raise
-                self._restart_with_qr()
-                jm = joint()
+            jm = self._with_qr_retry(lambda: self._isam.jointMarginalCovariance(sorted({*keys, int(key_to)})))
         except RuntimeError as exc:
             raise PoseGraphError(f"pose graph joint marginals: {_first_line(exc)}") from None
         x_to = self.estimate_of(key_to)
