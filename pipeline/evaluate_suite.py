@@ -22,9 +22,11 @@ Per recording (:func:`run_entry`):
   nothing of the recording's duration) and the loop-search time with its share of the SLAM wall time.
 - Maps, where the reference has at least 100 scans: the hold-out protocol on the reference poses (exactly
   ``evaluate map``) and on our own SLAM's poses after loop closure (SPEC section 6, "Maps from our own
-  SLAM", :func:`evaluate_slam_poses`), blocks of 40 scans or of 10 under 400 scans (``block_scans``);
-  each with its split by the cells the mapped beams observed (``auc_observed``, ``unobserved_share`` and
-  per seed, :func:`pipeline.evaluate_map.observed_split`).
+  SLAM", :func:`evaluate_slam_poses`), and once more with the test points from our poses as well
+  (``slam_poses_own_test_points``: the protocol the reference-pose map is scored by, applied to our
+  trajectory, so that neither trajectory is taken as the truth); blocks of 40 scans or of 10 under 400
+  scans (``block_scans``); each with its split by the cells the mapped beams observed (``auc_observed``,
+  ``unobserved_share`` and per seed, :func:`pipeline.evaluate_map.observed_split`).
   Simulated worlds with a ground-truth raster (``INPUT.gt.npz``): the ground-truth protocol on the true
   poses and on ours.
 
@@ -267,21 +269,31 @@ def evaluate_slam_poses(
     cfg: MappingConfig,
     progress: Progress,
     block_scans: int | None = None,
+    test_points_from: str = "reference",
 ) -> dict[str, Any]:
     """The hold-out protocol on our SLAM's poses (SPEC section 6, "Maps from our own SLAM"): the training
     scans mapped at our aligned poses (:func:`slam_poses_on_reference`; GPPOL with our rotated marginals;
     training scans without a SLAM pose left out), the test points from the REFERENCE poses of the held-out
-    scans. Output of :func:`pipeline.evaluate_map.evaluate_holdout` plus ``alignment_xytheta`` and
-    ``unmatched_reference_scans``."""
+    scans. Output of :func:`pipeline.evaluate_map.evaluate_holdout` plus ``alignment_xytheta``,
+    ``unmatched_reference_scans`` and ``test_points_from``.
+
+    ``test_points_from="slam"``: the test points from OUR poses of the held-out scans instead (a held-out
+    scan without a SLAM pose keeps its reference pose): the map's agreement with scans it was not built
+    from, both placed by our SLAM -- the protocol the reference-pose map is scored by, so the two compare
+    the trajectories' consistency without taking either as the truth."""
+    if test_points_from not in ("reference", "slam"):
+        raise ValueError(f"test_points_from must be 'reference' or 'slam', got {test_points_from!r}")
     base, cov, align, matched = slam_poses_on_reference(
         ref, rows, slam_base_xytheta, slam_cov_xytheta, slam_laser_in_base_xytheta
     )
     truth = reference_base_poses(ref, Path(reference_path))
+    test = truth if test_points_from == "reference" else np.where(matched[:, None], base, truth)
     out = evaluate_holdout(
-        ref, base, seeds, cfg, progress, cov, test_base_poses=truth, block_scans=block_scans, mappable=matched
+        ref, base, seeds, cfg, progress, cov, test_base_poses=test, block_scans=block_scans, mappable=matched
     )
     out["alignment_xytheta"] = align.tolist()
     out["unmatched_reference_scans"] = int(np.sum(~matched))
+    out["test_points_from"] = test_points_from
     return out
 
 
@@ -342,7 +354,13 @@ def _map_result(out: dict[str, Any], protocol: str, seeds: list[int], poses: str
         "poses": poses,
         "gppol_pose_covariance": pose_cov,
     }
-    for key in ("block_scans", "alignment_xytheta", "unmatched_reference_scans", "sensor_noise_from"):
+    for key in (
+        "block_scans",
+        "alignment_xytheta",
+        "unmatched_reference_scans",
+        "sensor_noise_from",
+        "test_points_from",
+    ):
         if key in out:
             result[key] = out[key]
     result["per_seed"] = _trim_seed_rows(out)
@@ -350,7 +368,12 @@ def _map_result(out: dict[str, Any], protocol: str, seeds: list[int], poses: str
 
 
 def _maps_skipped(reason: str) -> dict[str, Any]:
-    return {"reference_poses": None, "slam_poses": None, "skipped": reason}
+    return {
+        "reference_poses": None,
+        "slam_poses": None,
+        "slam_poses_own_test_points": None,
+        "skipped": reason,
+    }
 
 
 def run_entry(
@@ -473,7 +496,7 @@ def _evaluate(
     truth = reference_base_poses(ref, Path(reference_path))
     ours = np.asarray(result.poses_after_xytheta)[scans]
     our_cov = np.asarray(result.cov_after_xytheta)[scans]
-    maps: dict[str, Any] = {"reference_poses": None, "slam_poses": None}
+    maps: dict[str, Any] = {"reference_poses": None, "slam_poses": None, "slam_poses_own_test_points": None}
     row["maps"] = maps
     if gt is not None:
         t0 = time.perf_counter()
@@ -510,6 +533,24 @@ def _evaluate(
     )
     maps["slam_poses"] = _map_result(by_slam, "holdout", seeds, "slam", "SLAM marginals (aligned)")
     timings["maps_slam_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    by_self = evaluate_slam_poses(
+        ref,
+        reference_path,
+        rows,
+        ours,
+        our_cov,
+        rec.laser_in_base_xytheta,
+        seeds,
+        cfg,
+        progress,
+        block,
+        "slam",
+    )
+    maps["slam_poses_own_test_points"] = _map_result(
+        by_self, "holdout", seeds, "slam", "SLAM marginals (aligned)"
+    )
+    timings["maps_slam_own_s"] = time.perf_counter() - t0
 
 
 # ------------------------------------------------------------------------------------------- the suite
@@ -584,7 +625,8 @@ TABLE_LEGEND = (
     "scans: of the input (matched to the reference); ATE (m), NEES (3 if consistent): before / after loop "
     "closure; consecutive: error between consecutive reference scans after loop closure, m / deg; closures: "
     "accepted / rejected; x RT: real-time factor of the SLAM stage; loop search: its time and share of the "
-    "SLAM time; AUC (mean over the seeds): GPPOL / GPFOL / grid, maps on the reference poses and on ours; "
+    "SLAM time; AUC (mean over the seeds): GPPOL / GPFOL / grid, maps on the reference poses and on ours "
+    "(test points from the reference poses), and on ours with the test points from our poses too; "
     "observed: maps on the reference poses, GPPOL's AUC over the test points in cells the mapped beams "
     "observed / the share of test points in cells they did not"
 )
@@ -614,6 +656,7 @@ def table_row(row: dict[str, Any]) -> dict[str, str]:
     maps = row.get("maps") or {}
     cells["AUC ref. poses"] = _aucs(maps.get("reference_poses"))
     cells["AUC SLAM poses"] = _aucs(maps.get("slam_poses"))
+    cells["AUC SLAM poses, own test points"] = _aucs(maps.get("slam_poses_own_test_points"))
     cells["AUC observed GPPOL / unobserved"] = _observed(maps.get("reference_poses"))
     notes = list(row.get("notes") or [])
     if row.get("skipped"):

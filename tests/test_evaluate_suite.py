@@ -91,7 +91,12 @@ def test_suite_json_rows_error_skip_and_synthetic_stamps(data_folder) -> None:
     assert s["scans"] == 241 and s["loop_closures_accepted"] >= 0
     assert s["realtime_factor"] > 1  # 1,165 s of data
     assert 0 <= s["loop_search_share"] <= 1 and s["loop_search_s"] >= 0
-    assert seattle["maps"] == {"reference_poses": None, "slam_poses": None, "skipped": "--slam-only"}
+    assert seattle["maps"] == {
+        "reference_poses": None,
+        "slam_poses": None,
+        "slam_poses_own_test_points": None,
+        "skipped": "--slam-only",
+    }
 
     # belgioioso's stamps are synthetic (all equal): no real-time factor, and the row says why
     assert any("synthetic stamps" in n for n in rows["belgioioso"]["notes"])
@@ -190,3 +195,31 @@ def test_map_from_slam_poses_equals_the_reference_map_when_they_are_the_referenc
     got = evaluate_slam_poses(ref, path, rows, truth[rows], None, mount, [1], cfg, Progress())
     assert got["per_seed"][0]["training_scans"] == len(truth) - 23
     assert got["per_seed"][0]["test_points"] == expected["per_seed"][0]["test_points"]
+
+
+def test_own_test_points_come_from_the_slam_poses() -> None:
+    """The map is built from the training scans only, so moving the held-out scans' SLAM poses changes
+    nothing in the map: scored on the reference's test points it is the reference-pose map exactly, scored
+    on test points from those moved poses it loses AUC (and with unmoved poses the two protocols agree)."""
+    path = data_file("radish-corrected/seattle-corrected.log.gz")
+    ref = open_dataset(path)
+    truth = reference_base_poses(ref, path)
+    mount = ref.laser_in_base_xytheta
+    cfg = MappingConfig(**FAST)
+    rows = np.arange(len(truth))
+    held = holdout_split(len(truth), 1, block=10)
+    moved = truth.copy()
+    moved[held] = se2.compose(moved[held], np.array([0.15, -0.1, 0.03]))
+    on_ref = evaluate_slam_poses(ref, path, rows, moved, None, mount, [1], cfg, Progress())
+    own = evaluate_slam_poses(ref, path, rows, moved, None, mount, [1], cfg, Progress(), None, "slam")
+    same = evaluate_slam_poses(ref, path, rows, truth, None, mount, [1], cfg, Progress(), None, "slam")
+    expected = evaluate_holdout(ref, truth, [1], cfg, Progress())["per_seed"][0]
+    assert own["test_points_from"] == "slam" and on_ref["test_points_from"] == "reference"
+    for mapper in ("gppol", "gpfol"):
+        key = f"auc_{mapper}"
+        # the alignment moves everything by a hair (20 of 241 poses moved), so not bit for bit
+        assert on_ref["per_seed"][0][key] == pytest.approx(expected[key], abs=2e-3), mapper
+        assert same["per_seed"][0][key] == pytest.approx(expected[key], abs=1e-6), mapper
+        assert own["per_seed"][0][key] < expected[key] - 0.01, mapper
+    with pytest.raises(ValueError, match="test_points_from"):
+        evaluate_slam_poses(ref, path, rows, truth, None, mount, [1], cfg, Progress(), None, "truth")
