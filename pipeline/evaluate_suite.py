@@ -44,7 +44,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -269,7 +269,7 @@ def evaluate_slam_poses(
     cfg: MappingConfig,
     progress: Progress,
     block_scans: int | None = None,
-    test_points_from: str = "reference",
+    test_points_from: Literal["reference", "slam"] = "reference",
 ) -> dict[str, Any]:
     """The hold-out protocol on our SLAM's poses (SPEC section 6, "Maps from our own SLAM"): the training
     scans mapped at our aligned poses (:func:`slam_poses_on_reference`; GPPOL with our rotated marginals;
