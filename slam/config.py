@@ -419,6 +419,33 @@ class CloudOdometryConfig(BaseModel):
         return refuse_moved_keys(data, CLOUD_MOVED_KEYS)
 
 
+class ConsistencyConfig(BaseModel):
+    """The covariances the mapper receives (:mod:`slam.consistency`): each scan's pose relative to the
+    earlier passes over the places it observes, not to the graph's anchor."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    cell_m: float = Field(
+        1.0, gt=0, le=100, description="cell size of the places keyframes observe (their scan endpoints)"
+    )
+    revisit_gap_m: float = Field(
+        10.0,
+        ge=0,
+        description="a place (cell) is visited again when the robot travelled this far without seeing it "
+        "(a corridor seen along its length over one pass is one visit of each of its cells)",
+    )
+    min_shared: float = Field(
+        0.25,
+        gt=0,
+        le=1,
+        description="an earlier keyframe is another pass over a keyframe's place when it saw at least this "
+        "share of the keyframe's cells in an earlier visit",
+    )
+    max_partners: int = Field(
+        4, ge=1, le=100, description="earlier passes tried per keyframe (the most overlapping ones)"
+    )
+
+
 class SlamConfig(BaseModel):
     """Odometry, keyframing, loop closure and pose-graph settings."""
 
@@ -429,6 +456,7 @@ class SlamConfig(BaseModel):
     odometry: OdometryConfig = Field(default_factory=OdometryConfig)
     loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig)
     graph: GraphConfig = Field(default_factory=GraphConfig)
+    consistency: ConsistencyConfig = Field(default_factory=ConsistencyConfig)
     cloud: CloudOdometryConfig = Field(default_factory=CloudOdometryConfig)
 
     @model_validator(mode="after")

@@ -24,7 +24,10 @@ class SlamResult:
 
     Per scan: ``stamps_ns`` (N,), ``poses_before_xytheta`` / ``poses_after_xytheta`` (N, 3) base poses of
     the odometry chain and of the optimised graph, ``cov_before_xytheta`` / ``cov_after_xytheta``
-    (N, 3, 3) world-frame covariances, ``odometry_status`` (N,) int8 (see :mod:`slam.odometry`).
+    (N, 3, 3) world-frame covariances (marginals: relative to the graph's anchor, the first pose),
+    ``relative_cov_before_xytheta`` / ``relative_cov_after_xytheta`` (N, 3, 3) the covariances the mapper
+    receives, world-frame, of each scan's pose relative to the earlier passes over the places it observes
+    (:mod:`slam.consistency`), ``odometry_status`` (N,) int8 (see :mod:`slam.odometry`).
     Per keyframe: ``keyframe_scans`` (K,) scan indices, ``keyframe_stamps_ns`` (K,),
     ``keyframe_cov_before`` / ``keyframe_cov_after`` (K, 3, 3) world-frame marginals.
     ``loop_closures`` / ``rejected_loop_closures``: the verified and the refused attempts.
@@ -39,6 +42,8 @@ class SlamResult:
     poses_after_xytheta: FloatArray
     cov_before_xytheta: FloatArray
     cov_after_xytheta: FloatArray
+    relative_cov_before_xytheta: FloatArray
+    relative_cov_after_xytheta: FloatArray
     odometry_status: NDArray[np.int8]
     keyframe_scans: NDArray[np.int64]
     keyframe_stamps_ns: NDArray[np.int64]

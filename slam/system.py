@@ -7,8 +7,10 @@ a final batch optimisation, marginals of every keyframe, and the pose and covari
 
 Covariances leaving this module are world-frame (x, y, theta) (SPEC section 2). "Before" is the odometry
 chain alone (first-order propagation of the factor covariances, equal to the marginals of the chain graph),
-"after" the optimised graph with loop closures. A scan between keyframes takes the pose of its keyframe
-composed with its odometry offset, and its covariance adds the offset's uncertainty.
+"after" the optimised graph with loop closures. Besides these marginals (relative to the first pose), each
+scan gets the covariance the mapper uses: of its pose relative to the earlier passes over the places it
+observes (:mod:`slam.consistency`). A scan between keyframes takes the pose of its keyframe composed with its
+odometry offset, and its covariances add the offset's uncertainty.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from datasets.progress import ProgressLike, stage
 from datasets.types import Recording, ScanSequence, Trajectory
 from slam import geometry as se2
 from slam.config import GraphConfig, SlamConfig
+from slam.consistency import keyframe_consistency_body
 from slam.graph import Edge, PoseGraph, edge_errors2
 from slam.keyframes import keyframe_offsets, relative_cov_body, select_keyframes
 from slam.loop_closure import LoopCloser, LoopClosure
@@ -252,6 +255,11 @@ def run_slam(
         kf_cov_after_body = final.marginals_body()
     timings["marginals_s"] = time.perf_counter() - t0
     kf_cov_before_body = se2.propagate_chain_cov_body(rel, fac_cov * scale, cov0)
+    t0 = time.perf_counter()
+    kf_rel_before_body, kf_rel_after_body = keyframe_consistency_body(
+        poses[kf], est, final.edges, [points[s] for s in kf], closer.path_m[kf], cfg.consistency
+    )
+    timings["consistency_s"] = time.perf_counter() - t0
     loop_edges = [e for e in edges if e.kind == "loop"]
     loop_inlier = inliers[[i for i, e in enumerate(edges) if e.kind == "loop"]] if loop_edges else []
     accepted = [
@@ -274,6 +282,12 @@ def run_slam(
     cov_after = se2.rotate_cov_to_world(
         poses_after, se2.compose_cov_body(kf_cov_after_body[owner], offset, off_cov)
     )
+    rel_before = se2.rotate_cov_to_world(
+        poses, se2.compose_cov_body(kf_rel_before_body[owner], offset, off_cov)
+    )
+    rel_after = se2.rotate_cov_to_world(
+        poses_after, se2.compose_cov_body(kf_rel_after_body[owner], offset, off_cov)
+    )
     timings["per_scan_s"] = time.perf_counter() - t0
     timings["total_s"] = (
         sum(
@@ -286,6 +300,7 @@ def run_slam(
                 "dense_pass_s",
                 "graph_batch_s",
                 "marginals_s",
+                "consistency_s",
             )
         )
         + timings["per_scan_s"]
@@ -297,6 +312,8 @@ def run_slam(
         poses_after_xytheta=poses_after,
         cov_before_xytheta=_sym(cov_before),
         cov_after_xytheta=_sym(cov_after),
+        relative_cov_before_xytheta=_sym(rel_before),
+        relative_cov_after_xytheta=_sym(rel_after),
         odometry_status=odo.status,
         keyframe_scans=kf,
         keyframe_stamps_ns=stamps[kf],

@@ -34,7 +34,9 @@ from scipy.spatial import cKDTree
 
 from datasets.progress import ProgressLike, stage
 from datasets.types import CloudSequence
+from slam import geometry as se2
 from slam.config import CloudOdometryConfig, SlamConfig
+from slam.consistency import keyframe_consistency_body
 from slam.graph import Edge
 from slam.graph3d import (
     PoseGraph3,
@@ -314,10 +316,12 @@ def run_slam_clouds(
     after = np.zeros((n, 4, 4))
     cov_after_se3 = np.zeros((n, 6, 6))
     cov_before_se3 = np.zeros((n, 6, 6))
+    off_cov_se2 = np.zeros((n, 3, 3))
     for i in range(n):
         k = int(owner[i])
         off = relative_se3(poses[kf[k]], poses[i])
         off_cov = _chain_cov(poses, inc_cov, int(kf[k]), i)
+        off_cov_se2[i] = _cov_se2_of_body(off_cov)
         after[i] = est[k] @ off
         b_after = compose_rel_cov(off, world_to_body_cov(est[k], kf_cov_after[k]), off_cov)
         b_before = compose_rel_cov(off, world_to_body_cov(poses[kf[k]], kf_cov_before[k]), off_cov)
@@ -325,6 +329,26 @@ def run_slam_clouds(
         cov_before_se3[i] = body_to_world_cov(poses[i], b_before)
     cov_after = np.stack([project_cov_se2(after[i], cov_after_se3[i]) for i in range(n)])
     cov_before = np.stack([project_cov_se2(poses[i], cov_before_se3[i]) for i in range(n)])
+    # the mapper's covariances: relative to the earlier passes over each place, on the SE(2) projection
+    t0 = time.perf_counter()
+    before_se2, after_se2, kf_se2 = project_pose_se2(poses), project_pose_se2(after), project_pose_se2(est)
+    path_kf = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poses[kf, :2, 3], axis=0), axis=1))])
+    rel_before_body, rel_after_body = keyframe_consistency_body(
+        before_se2[kf],
+        kf_se2,
+        edges,
+        [sources[i][:, :2] for i in kf],
+        path_kf,
+        (config or SlamConfig()).consistency,
+    )
+    offset = se2.between(before_se2[kf[owner]], before_se2)
+    rel_before = se2.rotate_cov_to_world(
+        before_se2, se2.compose_cov_body(rel_before_body[owner], offset, off_cov_se2)
+    )
+    rel_after = se2.rotate_cov_to_world(
+        after_se2, se2.compose_cov_body(rel_after_body[owner], offset, off_cov_se2)
+    )
+    timings["consistency_s"] = time.perf_counter() - t0
     timings["total_s"] = sum(timings.values())
     return SlamResult(
         stamps_ns=stamps,
@@ -332,6 +356,8 @@ def run_slam_clouds(
         poses_after_xytheta=project_pose_se2(after),
         cov_before_xytheta=cov_before,
         cov_after_xytheta=cov_after,
+        relative_cov_before_xytheta=0.5 * (rel_before + np.swapaxes(rel_before, 1, 2)),
+        relative_cov_after_xytheta=0.5 * (rel_after + np.swapaxes(rel_after, 1, 2)),
         odometry_status=np.where(np.arange(n) == 0, 0, 1).astype(np.int8),
         keyframe_scans=kf,
         keyframe_stamps_ns=stamps[kf],

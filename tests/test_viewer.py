@@ -80,6 +80,8 @@ def _slam(stamps: np.ndarray) -> SlamResult:
         poses_after_xytheta=after,
         cov_before_xytheta=2 * cov_after,
         cov_after_xytheta=cov_after,
+        relative_cov_before_xytheta=0.5 * cov_after,
+        relative_cov_after_xytheta=0.25 * cov_after,
         odometry_status=np.zeros(N_SCANS, np.int8),
         keyframe_scans=keyframes,
         keyframe_stamps_ns=stamps[keyframes],
