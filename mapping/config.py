@@ -177,6 +177,13 @@ class GppolConfig(BaseModel):
         description="free points get the range variance too (Algorithm 3, steps 5-8); false: only bearing "
         "and pose noise (the free point's distance along the beam is chosen, not measured)",
     )
+    pose_covariances: Literal["relative", "world", "none"] = Field(
+        "relative",
+        description="which pose covariance of each scan the run hands GPPOL: 'relative' to the earlier "
+        "passes over the places it observes (slam.consistency: sharp where the passes agree, uncertain "
+        "where they disagree; gauge invariant), 'world' the world-frame marginal (relative to the first "
+        "pose: grows with the distance from it), 'none' exact poses (laser noise only)",
+    )
     ut: UnscentedConfig = Field(default_factory=UnscentedConfig)
 
     @model_validator(mode="after")

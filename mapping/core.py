@@ -352,12 +352,14 @@ INPUTS_GH_NODES = 3  # GPPOL, NN kernel, Gauss-Hermite nodes of both inputs (eq.
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
-def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, y):
-    """GPPOL training inputs centred on the query: means X (n, 2) and packed covariances S (n, 3).
+def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, SLo, G, y):
+    """GPPOL training inputs centred on the query: means X (n, 2), packed covariances S (n, 3), packed
+    covariances of the laser noise alone SLo (n, 3) and scan indices G (n,).
 
-    ``occ_mom`` (H, 5): mean and covariance of each endpoint (cell order of the point index); ``seg_mom``
-    (M, 14): per beam ``a, b, C0, C1, C2, L`` of :class:`mapping.unscented.BeamMoments` and the length L of
-    its free part, so that the free point at t along the segment is at d = t L: ``rho = a + d b``,
+    ``occ_mom`` (H, 9): mean, covariance, laser-noise covariance and scan of each endpoint (cell order of
+    the point index); ``seg_mom`` (M, 24): per beam ``a, b, C0, C1, C2`` of
+    :class:`mapping.unscented.BeamMoments`, the length L of its free part, the laser noise's ``C0, C1, C2``
+    and the scan, so that the free point at t along the segment is at d = t L: ``rho = a + d b``,
     ``Sigma = C0 + d C1 + d^2 C2`` (exact UT, Algorithm 3 steps 5-8)."""
     for i in range(no):
         j = ido[i]
@@ -366,6 +368,10 @@ def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, y):
         S[i, 0] = occ_mom[j, 2]
         S[i, 1] = occ_mom[j, 3]
         S[i, 2] = occ_mom[j, 4]
+        SLo[i, 0] = occ_mom[j, 5]
+        SLo[i, 1] = occ_mom[j, 6]
+        SLo[i, 2] = occ_mom[j, 7]
+        G[i] = occ_mom[j, 8]
         y[i] = 1.0
     for i in range(nf):
         j = idf[i]
@@ -375,23 +381,37 @@ def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, y):
         S[no + i, 0] = seg_mom[j, 4] + d * (seg_mom[j, 7] + d * seg_mom[j, 10])
         S[no + i, 1] = seg_mom[j, 5] + d * (seg_mom[j, 8] + d * seg_mom[j, 11])
         S[no + i, 2] = seg_mom[j, 6] + d * (seg_mom[j, 9] + d * seg_mom[j, 12])
+        SLo[no + i, 0] = seg_mom[j, 14] + d * (seg_mom[j, 17] + d * seg_mom[j, 20])
+        SLo[no + i, 1] = seg_mom[j, 15] + d * (seg_mom[j, 18] + d * seg_mom[j, 21])
+        SLo[no + i, 2] = seg_mom[j, 16] + d * (seg_mom[j, 19] + d * seg_mom[j, 22])
+        G[no + i] = seg_mom[j, 23]
         y[no + i] = -1.0
     return no + nf
 
 
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True, inline="always")
+def _pair_cov(SL, SLo, GL, i, j, lane, c):
+    """Entry ``c`` of the packed covariance of ``x_i - x_j``: ``Sigma_i + Sigma_j`` for inputs of different
+    scans, the laser noise's alone for two of one scan (a rigid motion keeps their distance)."""
+    if GL[i, lane] == GL[j, lane]:
+        return SLo[i, c, lane] + SLo[j, c, lane]
+    return SL[i, c, lane] + SL[j, c, lane]
+
+
 @nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
-def _girard_lanes(kp, XL, SL, mask, n, K, ks):
+def _girard_lanes(kp, XL, SL, SLo, GL, mask, n, K, ks):
     """Eq. (19) for the SE kernel (``kp = (sf2, 1/l^2)``): lower triangle of K[:n, :n, lane] and ks[:n, lane]
-    (Sigma_i + Sigma_j between training inputs, Sigma_i against the query at the origin; K_ii = sf2)."""
+    (the covariance of ``x_i - x_j``, :func:`_pair_cov`, between training inputs; Sigma_i against the query
+    at the origin; K_ii = sf2)."""
     nlanes = XL.shape[2]
     sf2 = kp[0]
     ell2 = 1.0 / kp[1]
     for i in range(n):
         for j in range(i):
             for lane in range(nlanes):
-                a00 = ell2 + SL[i, 0, lane] + SL[j, 0, lane]
-                a01 = SL[i, 1, lane] + SL[j, 1, lane]
-                a11 = ell2 + SL[i, 2, lane] + SL[j, 2, lane]
+                a00 = ell2 + _pair_cov(SL, SLo, GL, i, j, lane, 0)
+                a01 = _pair_cov(SL, SLo, GL, i, j, lane, 1)
+                a11 = ell2 + _pair_cov(SL, SLo, GL, i, j, lane, 2)
                 dx = XL[i, 0, lane] - XL[j, 0, lane]
                 dy = XL[i, 1, lane] - XL[j, 1, lane]
                 r = 1.0 / math.sqrt(a00 * a11 - a01 * a01)  # |L I + S|^(-1/2)
@@ -424,9 +444,9 @@ def _gh_difference_value(kid, c, gz, gw, dx, dy, s00, s01, s11):
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
-def _gh_difference_lanes(kid, kp, XL, SL, mask, n, K, ks, gz, gw):
-    """Eq. (23) for a stationary kernel, as the 2-D integral over the difference of two independent inputs
-    (``x_i - x_j ~ N(rho_i - rho_j, Sigma_i + Sigma_j)``); K_ii = sf2 (one draw)."""
+def _gh_difference_lanes(kid, kp, XL, SL, SLo, GL, mask, n, K, ks, gz, gw):
+    """Eq. (23) for a stationary kernel, as the 2-D integral over the difference of two inputs
+    (``x_i - x_j ~ N(rho_i - rho_j, .)``, its covariance :func:`_pair_cov`); K_ii = sf2 (one draw)."""
     nlanes = XL.shape[2]
     sf2 = kp[0]
     c = kp[1]
@@ -435,8 +455,8 @@ def _gh_difference_lanes(kid, kp, XL, SL, mask, n, K, ks, gz, gw):
             for lane in range(nlanes):
                 v = _gh_difference_value(
                     kid, c, gz, gw, XL[i, 0, lane] - XL[j, 0, lane], XL[i, 1, lane] - XL[j, 1, lane],
-                    SL[i, 0, lane] + SL[j, 0, lane], SL[i, 1, lane] + SL[j, 1, lane],
-                    SL[i, 2, lane] + SL[j, 2, lane],
+                    _pair_cov(SL, SLo, GL, i, j, lane, 0), _pair_cov(SL, SLo, GL, i, j, lane, 1),
+                    _pair_cov(SL, SLo, GL, i, j, lane, 2),
                 )  # fmt: skip
                 K[i, j, lane] = sf2 * v * (mask[i, lane] * mask[j, lane])
         for lane in range(nlanes):
@@ -501,12 +521,14 @@ def _gh_nodes_lanes(kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN):
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
-def _noisy_kernel_lanes(mode, kid, kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN):
-    """The GPPOL kernel blocks of ``mode`` (INPUTS_GIRARD, INPUTS_GH_DIFFERENCE or INPUTS_GH_NODES)."""
+def _noisy_kernel_lanes(mode, kid, kp, XL, SL, SLo, GL, mask, n, K, ks, gz, gw, PH, SN):
+    """The GPPOL kernel blocks of ``mode`` (INPUTS_GIRARD, INPUTS_GH_DIFFERENCE or INPUTS_GH_NODES). The
+    stationary modes treat two inputs of one scan (same GL) as sharing its pose error (:func:`_pair_cov`);
+    the NN kernel, not invariant to a rigid motion, integrates every pair over both full covariances."""
     if mode == INPUTS_GIRARD:
-        _girard_lanes(kp, XL, SL, mask, n, K, ks)
+        _girard_lanes(kp, XL, SL, SLo, GL, mask, n, K, ks)
     elif mode == INPUTS_GH_DIFFERENCE:
-        _gh_difference_lanes(kid, kp, XL, SL, mask, n, K, ks, gz, gw)
+        _gh_difference_lanes(kid, kp, XL, SL, SLo, GL, mask, n, K, ks, gz, gw)
     else:
         _gh_nodes_lanes(kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN)
 
@@ -546,7 +568,7 @@ class LocalGP(NamedTuple):
 
 class InputGaussians(NamedTuple):
     """The training inputs' distributions: ``mode`` INPUTS_POINTS (GPFOL: points, the arrays unused) or a
-    GPPOL mode; ``occ_moments`` (H, 5) and ``seg_moments`` (M, 14), see :func:`_gaussian_inputs`; the
+    GPPOL mode; ``occ_moments`` (H, 9) and ``seg_moments`` (M, 24), see :func:`_gaussian_inputs`; the
     Gauss-Hermite rule, ``nodes`` (m, 2) standard nodes and ``weights`` (m,) summing to 1."""
 
     mode: int
@@ -558,7 +580,7 @@ class InputGaussians(NamedTuple):
     @classmethod
     def points(cls) -> InputGaussians:
         """GPFOL: deterministic training inputs."""
-        return cls(INPUTS_POINTS, np.zeros((0, 5)), np.zeros((0, 14)), np.zeros((1, 2)), np.ones(1))
+        return cls(INPUTS_POINTS, np.zeros((0, 9)), np.zeros((0, 24)), np.zeros((1, 2)), np.ones(1))
 
 
 class _SearchScratch(NamedTuple):
@@ -579,12 +601,14 @@ class _SearchScratch(NamedTuple):
 
 
 class _LaneScratch(NamedTuple):
-    """LANES local problems of one chunk (see the fast path above): inputs XL, covariances SL, labels yL,
-    ``mask`` (1 real point, 0 pad), sizes ``counts``; K blocks KL, ksL and the solver's work arrays; GPPOL
-    quadrature nodes PH, SN."""
+    """LANES local problems of one chunk (see the fast path above): inputs XL, covariances SL (and SLo of
+    the laser noise alone, scans GL), labels yL, ``mask`` (1 real point, 0 pad), sizes ``counts``; K blocks
+    KL, ksL and the solver's work arrays; GPPOL quadrature nodes PH, SN."""
 
     XL: FloatArray
     SL: FloatArray
+    SLo: FloatArray
+    GL: FloatArray
     yL: FloatArray
     mask: FloatArray
     counts: IntArray
@@ -601,11 +625,13 @@ class _LaneScratch(NamedTuple):
 
 
 class _SingleScratch(NamedTuple):
-    """One local problem: inputs X, covariances S, labels y (filled per query, then copied to its lane), and
-    the scalar path's K, ks and work arrays."""
+    """One local problem: inputs X, covariances S (SLo of the laser noise alone, scans G), labels y (filled
+    per query, then copied to its lane), and the scalar path's K, ks and work arrays."""
 
     X: FloatArray
     S: FloatArray
+    SLo: FloatArray
+    G: FloatArray
     y: FloatArray
     K: FloatArray
     ks: FloatArray
@@ -645,6 +671,7 @@ def _pad_lanes(lanes, nfill):
     """Pads of the lanes with fewer than ``nfill`` points: zero inputs and labels (identity rows in K)."""
     XL = lanes.XL
     SL = lanes.SL
+    SLo = lanes.SLo
     yL = lanes.yL
     mask = lanes.mask
     counts = lanes.counts
@@ -652,9 +679,10 @@ def _pad_lanes(lanes, nfill):
         for i in range(counts[lane], nfill):
             XL[i, 0, lane] = 0.0
             XL[i, 1, lane] = 0.0
-            SL[i, 0, lane] = 0.0
-            SL[i, 1, lane] = 0.0
-            SL[i, 2, lane] = 0.0
+            for c in range(3):
+                SL[i, c, lane] = 0.0
+                SLo[i, c, lane] = 0.0
+            lanes.GL[i, lane] = -1.0
             yL[i, lane] = 0.0
             mask[i, lane] = 0.0
 
@@ -669,8 +697,8 @@ def _solve_lanes(gp, inputs, lanes, nfill):
         _kernel_lanes(kid, kp, lanes.XL, lanes.mask, nfill, lanes.KL, lanes.ksL, lanes.sL)
     else:
         _noisy_kernel_lanes(
-            inputs.mode, kid, kp, lanes.XL, lanes.SL, lanes.mask, nfill, lanes.KL, lanes.ksL, inputs.nodes,
-            inputs.weights, lanes.PH, lanes.SN,
+            inputs.mode, kid, kp, lanes.XL, lanes.SL, lanes.SLo, lanes.GL, lanes.mask, nfill, lanes.KL,
+            lanes.ksL, inputs.nodes, inputs.weights, lanes.PH, lanes.SN,
         )  # fmt: skip
     KL = lanes.KL
     mask = lanes.mask
@@ -732,8 +760,9 @@ def _solve_alone(lane, gp, inputs, lanes, one):
         kss1 = _kernel_blocks(kid, kp, X, n, one.K, one.ks, one.s)
     else:
         kss1 = _noisy_kernel_single(
-            inputs.mode, kid, kp, XL, lanes.SL, lane, n, one.K, one.ks, inputs.nodes, inputs.weights
-        )
+            inputs.mode, kid, kp, XL, lanes.SL, lanes.SLo, lanes.GL, lane, n, one.K, one.ks, inputs.nodes,
+            inputs.weights,
+        )  # fmt: skip
     return _solve_local(one.K, one.ks, kss1, y, n, gp.noise_var, gp.jitter, one.diag, one.v, one.w)
 
 
@@ -748,19 +777,22 @@ def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean,
     nodes = inputs.weights.shape[0] if inputs.mode == INPUTS_GH_NODES else 1
     sc = _search_scratch(points, segments, k_occ, k_free)
     one = _SingleScratch(
-        np.empty((nmax, 2)), np.zeros((nmax, 3)), np.empty(nmax), np.empty((nmax, nmax)), np.empty(nmax),
-        np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax),
+        np.empty((nmax, 2)), np.zeros((nmax, 3)), np.zeros((nmax, 3)), np.zeros(nmax), np.empty(nmax),
+        np.empty((nmax, nmax)), np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax),
+        np.empty(nmax),
     )  # fmt: skip
     lanes = _LaneScratch(
-        np.zeros((nmax, 2, LANES)), np.zeros((nmax, 3, LANES)), np.zeros((nmax, LANES)),
+        np.zeros((nmax, 2, LANES)), np.zeros((nmax, 3, LANES)), np.zeros((nmax, 3, LANES)),
+        np.zeros((nmax, LANES)), np.zeros((nmax, LANES)),
         np.zeros((nmax, LANES)), np.zeros(LANES, np.int64), np.empty((nmax, nmax, LANES)),
         np.empty((nmax, LANES)), np.empty((nmax, LANES)), np.empty((nmax, LANES)), np.empty((nmax, LANES)),
         np.empty((nmax, LANES)), np.empty((2, LANES)), np.empty(LANES, np.bool_),
         np.empty((nmax, nodes, 2, LANES)), np.empty((nmax, nodes, LANES)),
     )  # fmt: skip
     d2o, ido, to, d2f, idf, tf, warm_o, warm_f, pbuf, sbuf, scand = sc
-    X, S, y = one.X, one.S, one.y
-    XL, SL, yL, mask, counts = lanes.XL, lanes.SL, lanes.yL, lanes.mask, lanes.counts
+    X, S, SLo1, G1, y = one.X, one.S, one.SLo, one.G, one.y
+    XL, SL, SLo, GL = lanes.XL, lanes.SL, lanes.SLo, lanes.GL
+    yL, mask, counts = lanes.yL, lanes.mask, lanes.counts
     pts, seg = points.xy, segments.seg
     mode, occ_mom, seg_mom = inputs.mode, inputs.occ_moments, inputs.seg_moments
     no = 0
@@ -782,11 +814,12 @@ def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean,
             if mode == INPUTS_POINTS:
                 n = _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y)
             else:
-                n = _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, y)
+                n = _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, SLo1, G1, y)
                 for i in range(n):
-                    SL[i, 0, lane] = S[i, 0]
-                    SL[i, 1, lane] = S[i, 1]
-                    SL[i, 2, lane] = S[i, 2]
+                    for c in range(3):
+                        SL[i, c, lane] = S[i, c]
+                        SLo[i, c, lane] = SLo1[i, c]
+                    GL[i, lane] = G1[i]
             counts[lane] = n
             nfill = max(nfill, n)
             for i in range(n):
@@ -841,23 +874,28 @@ def predict_batch(queries, points, segments, gp, inputs, out_mean, out_var, out_
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _noisy_kernel_single(mode, kid, kp, XL, SL, lane, n, K, ks, gz, gw):
-    """The GPPOL blocks of one lane of XL / SL into the full K[:n, :n] and ks[:n] (the fallback path);
-    returns k(x*, x*)."""
+def _noisy_kernel_single(mode, kid, kp, XL, SL, SLo, GL, lane, n, K, ks, gz, gw):
+    """The GPPOL blocks of one lane of XL / SL / SLo / GL into the full K[:n, :n] and ks[:n] (the fallback
+    path); returns k(x*, x*)."""
     X1 = np.empty((n, 2, 1))
     S1 = np.empty((n, 3, 1))
+    Lo1 = np.empty((n, 3, 1))
+    G1 = np.empty((n, 1))
     m1 = np.ones((n, 1))
     for i in range(n):
         X1[i, 0, 0] = XL[i, 0, lane]
         X1[i, 1, 0] = XL[i, 1, lane]
+        G1[i, 0] = GL[i, lane]
         for c in range(3):
             S1[i, c, 0] = SL[i, c, lane]
+            Lo1[i, c, 0] = SLo[i, c, lane]
     K1 = np.empty((n, n, 1))
     ks1 = np.empty((n, 1))
     nodes = gw.shape[0] if mode == INPUTS_GH_NODES else 1
     _noisy_kernel_lanes(
-        mode, kid, kp, X1, S1, m1, n, K1, ks1, gz, gw, np.empty((n, nodes, 2, 1)), np.empty((n, nodes, 1))
-    )
+        mode, kid, kp, X1, S1, Lo1, G1, m1, n, K1, ks1, gz, gw, np.empty((n, nodes, 2, 1)),
+        np.empty((n, nodes, 1)),
+    )  # fmt: skip
     for i in range(n):
         for j in range(i + 1):
             K[i, j] = K1[i, j, 0]

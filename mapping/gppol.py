@@ -72,15 +72,35 @@ def input_moments(
 
 @dataclass(frozen=True)
 class GaussianInputs:
-    """What makes a map GPPOL: the per-beam input Gaussians and how kernels are integrated over them."""
+    """What makes a map GPPOL: the per-beam input Gaussians and how kernels are integrated over them.
+
+    ``moments`` (and ``free_moments`` for the free points, where they differ) hold each beam's full input
+    Gaussian: the laser noise and its scan's pose covariance. ``local_moments`` / ``local_free_moments``
+    hold the laser noise alone (None: the same as the full ones, as without pose covariances). The beams
+    of one scan share its pose error (SPEC section 5): a rigid motion keeps the distance between two of
+    its points, so for a stationary isotropic kernel their expected kernel is the one over the laser noise
+    alone; two points of different scans, whose pose errors are taken as independent, integrate over both
+    full covariances (eq. 17); the test point is deterministic."""
 
     moments: BeamMoments
     expectation: InputExpectation = DEFAULT_EXPECTATION
     free_moments: BeamMoments | None = None  # free points' coefficients if they differ (no range noise)
+    local_moments: BeamMoments | None = None  # the laser noise alone (same-scan pairs)
+    local_free_moments: BeamMoments | None = None
 
     def free(self) -> BeamMoments:
         """The coefficients of the free points (default: those of the endpoints, as Algorithm 3)."""
         return self.moments if self.free_moments is None else self.free_moments
+
+    def local(self) -> BeamMoments:
+        """The endpoints' coefficients of the laser noise alone (default: the full ones)."""
+        return self.moments if self.local_moments is None else self.local_moments
+
+    def local_free(self) -> BeamMoments:
+        """The free points' coefficients of the laser noise alone (default: the full ones)."""
+        if self.local_free_moments is not None:
+            return self.local_free_moments
+        return self.free() if self.local_moments is None else self.local_moments
 
     def core_mode(self, kernel: Kernel) -> int:
         """The GPPOL mode of :func:`mapping.core.predict_batch` for ``kernel``."""
@@ -95,12 +115,22 @@ class GaussianInputs:
         return np.ascontiguousarray(z), np.ascontiguousarray(w)
 
     def core_arrays(self, beams: Beams, hit_beam: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
-        """``occ_mom`` (H, 5): mean and packed covariance of the endpoints ``hit_beam`` (in the point index's
-        order), and ``seg_mom`` (M, 14): per beam ``a, b, C0, C1, C2`` and the length of its free part."""
-        mo = self.moments
+        """``occ_mom`` (H, 9): mean, packed covariance, packed covariance of the laser noise alone and scan
+        index of the endpoints ``hit_beam`` (in the point index's order); ``seg_mom`` (M, 24): per beam
+        ``a, b, C0, C1, C2``, the length of its free part, the laser noise's ``C0, C1, C2`` and the scan
+        index (:func:`mapping.core._gaussian_inputs`)."""
+        mo, lo = self.moments, self.local()
         d_hit = beams.ranges_m[hit_beam]
-        occ = np.column_stack([mo.mean_at(d_hit, hit_beam), mo.packed_cov_at(d_hit, hit_beam)])
+        scan = beams.scan_index.astype(np.float64)
+        occ = np.column_stack(
+            [
+                mo.mean_at(d_hit, hit_beam),
+                mo.packed_cov_at(d_hit, hit_beam),
+                lo.packed_cov_at(d_hit, hit_beam),
+                scan[hit_beam],
+            ]
+        )
         free_len = np.hypot(*(beams.free_ends_xy_m - beams.origins_xy_m).T)
-        fm = self.free()
-        seg = np.column_stack([fm.a, fm.b, fm.c0, fm.c1, fm.c2, free_len])
+        fm, fl = self.free(), self.local_free()
+        seg = np.column_stack([fm.a, fm.b, fm.c0, fm.c1, fm.c2, free_len, fl.c0, fl.c1, fl.c2, scan])
         return np.ascontiguousarray(occ), np.ascontiguousarray(seg)

@@ -166,6 +166,28 @@ class BeamIndex:
         d = t |free part|; ``free_moments`` for the free points if given), labels y (Q', n), for the Q'
         queries
         with a full neighbourhood (mask (Q,))."""
+        X, cov, y, full, _, _ = self._local(queries_xy_m, k_occ, k_free, moments, free_moments)
+        return X, cov, y, full
+
+    def local_gaussians_by_scan(
+        self,
+        queries_xy_m: FloatArray,
+        k_occ: int,
+        k_free: int,
+        moments: BeamMoments,
+        free_moments: BeamMoments | None,
+        local_moments: BeamMoments,
+        local_free_moments: BeamMoments,
+    ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.int64], FloatArray, NDArray[np.bool_]]:
+        """:meth:`local_gaussians` plus, per training input, the covariance of the laser noise alone (from
+        ``local_moments`` / ``local_free_moments``, (Q', n, 2, 2)) and its scan index (Q', n): returns
+        ``X, cov, local_cov, scans, y, full``."""
+        X, cov, y, full, hb, free = self._local(queries_xy_m, k_occ, k_free, moments, free_moments)
+        _, local_cov, _, _, _, _ = self._local(queries_xy_m, k_occ, k_free, local_moments, local_free_moments)
+        scan = self.beams.scan_index
+        return X, cov, local_cov, np.concatenate([scan[hb], scan[free]], axis=1), y, full
+
+    def _local(self, queries_xy_m, k_occ, k_free, moments, free_moments):
         q = np.asarray(queries_xy_m, dtype=np.float64).reshape(-1, 2)
         occ, free, t = self.gather(q, k_occ, k_free)
         full = (occ >= 0).all(axis=1) & (free >= 0).all(axis=1)
@@ -180,4 +202,4 @@ class BeamIndex:
             np.concatenate([moments.packed_cov_at(d_occ, hb), fm.packed_cov_at(d_free, free)], 1)
         )
         y = np.concatenate([np.ones((q.shape[0], k_occ)), -np.ones((q.shape[0], k_free))], axis=1)
-        return X, cov, y, full
+        return X, cov, y, full, hb, free

@@ -166,11 +166,22 @@ class InputExpectation:
 
     # -- training-training ------------------------------------------------------------------------------
     def matrix(
-        self, kernel: Kernel, X: FloatArray, cov: FloatArray, eval_gradient: bool = False
+        self,
+        kernel: Kernel,
+        X: FloatArray,
+        cov: FloatArray,
+        eval_gradient: bool = False,
+        local_cov: FloatArray | None = None,
+        scans: NDArray | None = None,
     ) -> FloatArray | tuple[FloatArray, FloatArray]:
         """K (..., n, n) between inputs N(X (..., n, 2), cov (..., n, 2, 2)): independent draws off the
         diagonal (eq. 17), one draw on it (SPEC section 5); with ``eval_gradient`` also dK/dtheta
-        (..., n, n, P)."""
+        (..., n, n, P).
+
+        With ``scans`` (..., n) and ``local_cov`` (..., n, 2, 2), the covariances of the laser noise alone:
+        two inputs of one scan share its pose error, and a rigid motion keeps their distance, so a
+        stationary kernel integrates them over their laser noise only (the NN kernel, not invariant to
+        rigid motions, keeps eq. 17)."""
         self.check(kernel)
         X = np.asarray(X, dtype=np.float64)
         cov = np.asarray(cov, dtype=np.float64)
@@ -179,6 +190,10 @@ class InputExpectation:
         if kernel.stationary:
             D = X[..., :, None, :] - X[..., None, :, :]
             S = cov[..., :, None, :, :] + cov[..., None, :, :, :]
+            if scans is not None:
+                lc = np.asarray(local_cov, dtype=np.float64)
+                same = np.asarray(scans)[..., :, None] == np.asarray(scans)[..., None, :]
+                S = np.where(same[..., None, None], lc[..., :, None, :, :] + lc[..., None, :, :, :], S)
             if self.method == GIRARD:
                 out = girard_se(kernel, D, S, eval_gradient)
             else:

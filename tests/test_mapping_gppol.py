@@ -29,11 +29,14 @@ def intel():
 
 
 def _reference_prediction(gp: GPOccupancyMap, queries: np.ndarray, k_occ: int, k_free: int):
-    """Mean, variance, p(occ) of eqs. 2-3 + PLS from the numpy kernels between distributions."""
+    """Mean, variance, p(occ) of eqs. 2-3 + PLS from the numpy kernels between distributions (two inputs
+    of one scan integrated over their laser noise alone, as the core does)."""
     inputs = gp.inputs
-    X, cov, y, full = gp.index.local_gaussians(queries, k_occ, k_free, inputs.moments, inputs.free_moments)
+    X, cov, local, scans, y, full = gp.index.local_gaussians_by_scan(
+        queries, k_occ, k_free, inputs.moments, inputs.free_moments, inputs.local(), inputs.local_free()
+    )
     kern, ex = gp.params.kernel, inputs.expectation
-    K = ex.matrix(kern, X, cov) + gp.params.noise_var * np.eye(X.shape[1])
+    K = ex.matrix(kern, X, cov, local_cov=local, scans=scans) + gp.params.noise_var * np.eye(X.shape[1])
     ks = ex.cross(kern, X, cov, np.zeros((X.shape[0], 1, 2)))[..., 0]
     kss = kern(np.zeros((1, 2)))[0, 0]
     a = np.linalg.solve(K, np.concatenate([y[..., None], ks[..., None]], axis=2))
@@ -58,11 +61,11 @@ def test_compiled_core_matches_the_numpy_reference(intel, kernel, method, level)
     cov = np.tile(np.diag([0.1**2, 0.05**2, 0.02**2]), (len(rec.scans), 1, 1))
     cov[:, 0, 2] = cov[:, 2, 0] = 0.5 * 0.1 * 0.02  # correlated terms kept
     moments = input_moments(beams, cov, [SensorNoise(0.01, 1e-4)])
+    laser_only = input_moments(beams, None, [SensorNoise(0.01, 1e-4)])
     values = {"nn": (0.9, 3.0, 4.0), "se": (0.9, 0.6), "matern32": (0.9, 0.8)}[kernel]
     params = GPParams(make_kernel(kernel, values), 0.1, 8.0, 0.3, {"inputs": {}})
-    gp = GPOccupancyMap(
-        beams, params, 15, 15, inputs=GaussianInputs(moments, InputExpectation(method, level))
-    )
+    inputs = GaussianInputs(moments, InputExpectation(method, level), local_moments=laser_only)
+    gp = GPOccupancyMap(beams, params, 15, 15, inputs=inputs)
     rng = np.random.default_rng(3)
     q = beams.hit_xy_m[rng.choice(int(beams.is_hit.sum()), 60, replace=False)] + rng.normal(0, 0.4, (60, 2))
     mu, var, prob, full = _reference_prediction(gp, q, 15, 15)
@@ -71,10 +74,66 @@ def test_compiled_core_matches_the_numpy_reference(intel, kernel, method, level)
     np.testing.assert_allclose(pred.mean, mu, atol=2e-7, rtol=1e-6)
     np.testing.assert_allclose(pred.variance, var, atol=2e-7, rtol=1e-6)
     np.testing.assert_allclose(pred.probability, prob, atol=1e-6)
-    # the inputs matter: the same map with exact inputs (GPFOL) differs
+    # the inputs matter: the same map with exact inputs (GPFOL) differs, and so does one whose beams of a
+    # scan are taken as independent (eq. 17 for every pair) for the stationary kernels
     assert (
         np.abs(GPOccupancyMap(beams, params, 15, 15).query(q[full], sort=False).variance - var).max() > 1e-3
     )
+    independent = GPOccupancyMap(
+        beams, params, 15, 15, inputs=GaussianInputs(moments, InputExpectation(method, level))
+    ).query(q[full], sort=False)
+    assert (np.abs(independent.variance - var).max() > 1e-3) == params.kernel.stationary
+
+
+@pytest.mark.parametrize("mode", ["girard", "gh_difference"])
+def test_two_points_of_one_scan_keep_their_kernel_two_of_two_scans_integrate_over_both(mode) -> None:
+    """Monte Carlo over rigid motions of two scans (independent, each with translation and heading
+    errors): E[k] between two points of one scan is the kernel at their distance (a rigid motion keeps
+    it); between points of two scans it is the kernel integrated over both points' covariances, which for
+    translations is exact (eq. 19 / Gauss-Hermite), checked against the draws."""
+    from mapping.core import INPUTS_GH_DIFFERENCE, INPUTS_GIRARD, KERNEL_SE, _noisy_kernel_lanes
+    from mapping.noisy_kernels import girard_se
+
+    rng = np.random.default_rng(0)
+    ell, sf2 = 0.5, 0.8
+    pose_sd = np.array([0.3, 0.2])  # translation only: every point's distribution is exactly Gaussian
+    p_a = np.array([[1.0, 0.2], [1.3, 0.9]])  # scan A's points, in its frame (scan at the origin)
+    p_b = np.array([[1.6, 0.4]])  # scan B's point
+    draws = 200_000
+    e_a = rng.normal(size=(draws, 2)) * pose_sd
+    e_b = rng.normal(size=(draws, 2)) * pose_sd
+    th = rng.normal(size=draws) * 0.1  # a heading error of scan A too: it keeps the distance within A
+    rot = np.stack([np.cos(th), -np.sin(th), np.sin(th), np.cos(th)], -1).reshape(-1, 2, 2)
+    a0, a1 = (rot @ p_a[i] + e_a for i in (0, 1))
+    b0 = p_b[0] + e_b
+    k = lambda d: sf2 * np.exp(-0.5 * np.sum(d * d, axis=-1) / ell**2)  # noqa: E731
+    within_mc, across_mc = k(a0 - a1).mean(), k(a1 - b0).mean()
+    # the core, one lane: inputs A0, A1 (scan 0), B0 (scan 1); covariances: the translation part
+    X = np.zeros((3, 2, 32))
+    X[:, :, 0] = [p_a[0], p_a[1], p_b[0]]
+    S = np.zeros((3, 3, 32))
+    S[:, 0, 0], S[:, 2, 0] = pose_sd[0] ** 2, pose_sd[1] ** 2
+    G = np.zeros((3, 32))
+    G[2, 0] = 1.0
+    K, ks = np.zeros((3, 3, 32)), np.zeros((3, 32))
+    z, w = InputExpectation(GAUSS_HERMITE, 8).rule()
+    core_mode = INPUTS_GIRARD if mode == "girard" else INPUTS_GH_DIFFERENCE
+    kp = np.array([sf2, 1.0 / ell**2])
+    _noisy_kernel_lanes(core_mode, KERNEL_SE, kp, X, S, np.zeros_like(S), G, np.ones((3, 32)), 3, K, ks,
+                        np.ascontiguousarray(z), np.ascontiguousarray(w), np.zeros((3, 1, 2, 32)),
+                        np.zeros((3, 1, 32)))  # fmt: skip
+    assert K[1, 0, 0] == pytest.approx(k(p_a[0] - p_a[1]), rel=1e-6)  # within one scan: the kernel itself
+    assert K[1, 0, 0] == pytest.approx(within_mc, rel=1e-9)  # ... which every draw gives
+    assert K[2, 1, 0] == pytest.approx(across_mc, rel=0.01)  # across scans: integrated over both
+    se = make_kernel("se", (np.sqrt(sf2), ell))  # sigma_f, length scale
+    exact = girard_se(se, (p_b[0] - p_a[1])[None], np.diag(2 * pose_sd**2)[None])[0]
+    assert K[2, 1, 0] == pytest.approx(exact, rel=1e-5 if mode == "girard" else 1e-3)
+    # taken as independent (eq. 17 for every pair), the within-scan entry would shrink instead
+    K2 = np.zeros_like(K)
+    _noisy_kernel_lanes(core_mode, KERNEL_SE, kp, X, S, S, G * 0 + np.arange(3)[:, None], np.ones((3, 32)),
+                        3, K2, ks, np.ascontiguousarray(z), np.ascontiguousarray(w), np.zeros((3, 1, 2, 32)),
+                        np.zeros((3, 1, 32)))  # fmt: skip
+    assert K2[1, 0, 0] < 0.95 * within_mc  # 0.91 of it here
 
 
 def test_exact_inputs_make_gppol_gpfol(intel) -> None:
