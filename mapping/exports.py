@@ -122,6 +122,17 @@ class MapLayers:
             raise MapExportError("the map has no classification (no prior variance / thresholds)")
         return self.classification.values(self.probability, self.variance)
 
+    def cell_shares(self) -> dict[str, float]:
+        """The shares of the map's cells the planners' classification calls ``occupied``, ``free`` (of an
+        unknown cell's probability nothing is said) and ``unknown``; they sum to 1."""
+        values = self.occupancy_values()
+        n = max(values.size, 1)
+        return {
+            "occupied": float(np.count_nonzero(values == 100)) / n,
+            "free": float(np.count_nonzero(values == 0)) / n,
+            "unknown": float(np.count_nonzero(values == -1)) / n,
+        }
+
 
 def write_map_server(
     stem: Path,

@@ -1,4 +1,9 @@
-"""Map metrics: the ROC curve and the area under it (paper section 4.1.1, Table 1)."""
+"""Map metrics: the ROC curve and the area under it (paper section 4.1.1, Table 1), and the log loss.
+
+AUC ranks: it asks whether occupied test points score above free ones, and ignores what the probabilities
+say. The log loss (mean negative log-likelihood of the labels) is a proper scoring rule: it rewards a map
+that is uncertain where it does not know and punishes one that is confidently wrong, which is what the map's
+variance and the PLS link are for."""
 
 from __future__ import annotations
 
@@ -54,3 +59,21 @@ def fpr_at_tpr(fpr: FloatArray, tpr: FloatArray, target_tpr: float = 0.95) -> fl
     """False-positive rate when the true-positive rate first reaches ``target_tpr`` (paper Table 1)."""
     i = int(np.searchsorted(tpr, target_tpr, side="left"))
     return float(fpr[min(i, fpr.size - 1)])
+
+
+#: Probabilities are clipped to [LOG_LOSS_CLIP, 1 - LOG_LOSS_CLIP] in :func:`log_loss` (a map that says 0 or 1
+#: would otherwise cost infinity for one wrong point).
+LOG_LOSS_CLIP = 1e-3
+
+
+def log_loss(probabilities: NDArray, labels: NDArray) -> float:
+    """Mean negative log-likelihood (nats) of boolean ``labels`` under ``probabilities`` of the positive
+    class, clipped to [1e-3, 1 - 1e-3]: 0.693 for a map that says 0.5 everywhere, lower is better."""
+    p = np.asarray(probabilities, dtype=np.float64).ravel()
+    y = np.asarray(labels).ravel().astype(bool)
+    if p.shape != y.shape:
+        raise ValueError(f"{p.shape[0]} probabilities but {y.shape[0]} labels")
+    if p.size == 0 or not np.all(np.isfinite(p)):
+        raise ValueError("log loss needs finite probabilities")
+    p = np.clip(p, LOG_LOSS_CLIP, 1.0 - LOG_LOSS_CLIP)
+    return float(-np.mean(np.where(y, np.log(p), np.log1p(-p))))

@@ -33,6 +33,7 @@ from pipeline.artifacts import (
     TRAJECTORY_DIR,
     StoredScans,
     covariances_at,
+    read_mapper_covariances,
     read_scan_covariances,
     read_scans,
 )
@@ -78,7 +79,8 @@ class RunTrajectories:
 @dataclass(frozen=True)
 class RunCovariances:
     """The pose covariance of every scan, world frame, order (x, y, theta) (m^2, rad^2): ``stamps_ns`` (N,),
-    ``before`` / ``after`` (N, 3, 3) before / after loop closure (GPPOL maps with them)."""
+    ``before`` / ``after`` (N, 3, 3) before / after loop closure: the marginals, relative to the graph's
+    anchor (GPPOL maps with :attr:`RunView.mapper_covariances`)."""
 
     stamps_ns: NDArray[np.int64]
     before: NDArray[np.float64]
@@ -175,6 +177,21 @@ class RunView:
         return RunCovariances(stamps, cov["before"], cov["after"])
 
     @cached_property
+    def mapper_covariances(self) -> NDArray[np.float64] | None:
+        """(N, 3, 3) the covariances this run's ``map`` was built with (``mapping.gppol.pose_covariances``:
+        by default each scan's pose relative to the earlier passes over its places; None: exact poses)."""
+        path = self.run_dir / TRAJECTORY_DIR / COVARIANCES_NPZ
+        stamps = self.scans.scans.stamps_ns
+        with stage_boundary("reading", path):
+            found = read_mapper_covariances(path, self.map_name, self.config.mapping.gppol.pose_covariances)
+            if found is None:
+                return None
+            cov_stamps, values = found
+            if np.array_equal(cov_stamps, stamps) and values.shape == (len(stamps), 3, 3):
+                return values
+            return covariances_at(stamps, cov_stamps, values)
+
+    @cached_property
     def params(self) -> GPParams:
         """The GP parameters the run learnt (``maps/params.json``): kernel, noise and PLS link."""
         path = params_path(self.run_dir / "maps")
@@ -194,7 +211,7 @@ class RunView:
         traj = self.trajectory
         before = self.map_name == "before"
         poses = traj.poses_before_xytheta if before else traj.poses_after_xytheta
-        cov = self.covariances.before if before else self.covariances.after
+        cov = self.mapper_covariances
         params = self.params
         with stage_boundary("mapping", self.run_dir):
             selected = builder.select_scans(traj.poses_before_xytheta, laser)

@@ -6,7 +6,9 @@
 - ``trajectory/pose_graph.g2o``: the optimised graph (keyframes), loop closures included;
 - ``trajectory/covariances.npz``: world-frame (x, y, theta) keyframe marginals before / after (SPEC keys
   ``stamps_ns``, ``before``, ``after``, ``indices``) plus the per-scan covariances ``scan_before`` /
-  ``scan_after`` (N, 3, 3) and ``scan_stamps_ns`` (N,).
+  ``scan_after`` (N, 3, 3) and ``scan_stamps_ns`` (N,), and the covariances GPPOL maps with,
+  ``scan_relative_before`` / ``scan_relative_after`` (N, 3, 3): each scan's pose relative to the earlier
+  passes over the places it observes (:mod:`slam.consistency`), world frame.
 """
 
 from __future__ import annotations
@@ -113,10 +115,54 @@ def write_trajectories(folder: Path, slam: SlamResult) -> dict[str, Path]:
         scan_stamps_ns=slam.stamps_ns,
         scan_before=slam.cov_before_xytheta,
         scan_after=slam.cov_after_xytheta,
+        scan_relative_before=slam.relative_cov_before_xytheta,
+        scan_relative_after=slam.relative_cov_after_xytheta,
         frame="world",
         order="x y theta",
     )
     return paths
+
+
+#: What ``mapping.gppol.pose_covariances`` can name (:func:`mapper_covariances`).
+POSE_COVARIANCES = ("relative", "world", "none")
+
+
+def mapper_covariances(slam: SlamResult, which: str, mode: str) -> NDArray[np.float64] | None:
+    """(N, 3, 3) the covariances a map ``which`` (``"before"`` / ``"after"`` loop closure) is built with,
+    as ``mapping.gppol.pose_covariances`` (``mode``) names them: ``"relative"`` (to the earlier passes over
+    each place), ``"world"`` (the marginals) or ``"none"`` (None: exact poses)."""
+    if which not in ("before", "after"):
+        raise ValueError(f"which must be 'before' or 'after', not {which!r}")
+    if mode == "none":
+        return None
+    if mode == "relative":
+        return getattr(slam, f"relative_cov_{which}_xytheta")
+    if mode == "world":
+        return getattr(slam, f"cov_{which}_xytheta")
+    raise ValueError(f"pose covariances must be one of {POSE_COVARIANCES}, not {mode!r}")
+
+
+def read_mapper_covariances(path: Path, which: str, mode: str) -> tuple[NDArray[np.int64], NDArray] | None:
+    """The per-scan covariances ``(stamps_ns, cov)`` of a ``covariances.npz`` that a map ``which`` is built
+    with under ``mode`` (as :func:`mapper_covariances`; None for ``"none"``). ``"relative"`` reads
+    ``scan_relative_{which}``; a file without it (written by another tool, or before it existed) gives its
+    world-frame covariances (:func:`read_scan_covariances`)."""
+    if mode == "none":
+        return None
+    if mode == "relative":
+
+        def read(z) -> tuple[NDArray[np.int64], NDArray] | None:
+            key = f"scan_relative_{which}"
+            if key not in z:
+                return None
+            return np.asarray(z["scan_stamps_ns"], np.int64), np.asarray(z[key], np.float64)
+
+        found = _from_covariance_archive(path, read)
+        if found is not None:
+            return found
+    elif mode != "world":
+        raise ValueError(f"pose covariances must be one of {POSE_COVARIANCES}, not {mode!r}")
+    return read_scan_covariances(path, which)
 
 
 def read_scan_covariances(path: Path, which: str = "after") -> tuple[NDArray[np.int64], NDArray]:

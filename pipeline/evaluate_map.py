@@ -5,18 +5,21 @@ raster scored; a world of several platforms is mapped from all their scan topics
 says otherwise), the hold-out protocol otherwise (blocks of 40 scans held out, of 10 in recordings under
 400 scans, ``block_scans`` in the output; test points along their beams).
 Maps are built from the input's reference poses; a recording without them is mapped on the optimised
-trajectory of the SLAM stage, whose marginal covariances GPPOL then uses, and the output says so (``poses``).
+trajectory of the SLAM stage, whose covariances GPPOL then uses, and the output says so (``poses``).
 Every seed also splits its test points by the cells the mapped beams observed (a free segment crosses the
 cell or an endpoint lies in it; cells of ``mapping.resolution_m``, the raster's own on the ground-truth
 protocol): ``auc_observed_*`` / ``auc_unobserved_*`` (null where a label is missing) and
 ``unobserved_share``, with their means ``auc_observed`` and ``unobserved_share``. The test points and the
-other AUCs are those of the protocol, untouched.
+other AUCs are those of the protocol, untouched. Each seed also reports ``log_loss_*`` (the mean negative
+log-likelihood of the test labels, :func:`mapping.metrics.log_loss`): AUC ranks, the log loss also asks
+whether the probabilities are honest.
 
 Input uncertainty given to GPPOL:
 
 - laser noise per source: on a simulated world, the noise the simulator used (the ground truth's ``sources``,
   overriding ``mapping.sources``; the output says so), otherwise ``mapping.sources`` / ``default_source``;
-- pose covariance: zero for reference poses (taken as exact), the SLAM marginals for SLAM poses, and with
+- pose covariance: zero for reference poses (taken as exact), for SLAM poses the covariances
+  ``mapping.gppol.pose_covariances`` names (default: relative to the earlier passes over each place), and with
   ``perturb_poses = (sigma_xy_m, sigma_theta_rad)`` (``--perturb-poses``, after the Hilbert-maps reference's
   ``perturb_data``) ``diag(sigma_xy^2, sigma_xy^2, sigma_theta^2)`` for every scan. Perturbation: each scan's
   reference BASE pose gets ``(sigma_xy, sigma_xy, sigma_theta) * z``, ``z`` the (N, 3) standard-normal draw of
@@ -45,7 +48,8 @@ from mapping.evaluation import (
     is_carmen_180,
     observed_points,
 )
-from mapping.metrics import roc_auc
+from mapping.metrics import log_loss, roc_auc
+from pipeline.artifacts import mapper_covariances
 from pipeline.config import load_config
 from pipeline.errors import PipelineError
 from pipeline.map_bounds import parse_numbers
@@ -78,11 +82,17 @@ def reference_laser_poses(rec: Recording, input_path: Path) -> np.ndarray:
 
 
 def mapping_poses(
-    rec: Recording, input_path: Path, slam_config: Any = None, progress: Progress | None = None
+    rec: Recording,
+    input_path: Path,
+    slam_config: Any = None,
+    progress: Progress | None = None,
+    pose_covariances: str = "relative",
 ) -> tuple[np.ndarray, str, np.ndarray | None]:
     """(N, 3) base poses to map with, where they come from, and their (N, 3, 3) world-frame covariances:
     the reference poses when the recording has them (``"reference"``, taken as exact: None), else the
-    optimised trajectory of the SLAM stage and its marginals (``"slam"``, SPEC section 6)."""
+    optimised trajectory of the SLAM stage and the covariances ``pose_covariances`` names
+    (``mapping.gppol.pose_covariances``, :func:`pipeline.artifacts.mapper_covariances`; ``"slam"``, SPEC
+    section 6)."""
     if rec.scans is None or len(rec.scans) == 0:
         raise DatasetError(f"{input_path}: no laser scans to map")
     if rec.reference is not None:
@@ -90,7 +100,8 @@ def mapping_poses(
     from slam.system import run_slam_recording
 
     result = run_slam_recording(rec, slam_config, progress)
-    return np.asarray(result.poses_after_xytheta), "slam", np.asarray(result.cov_after_xytheta)
+    cov = mapper_covariances(result, "after", pose_covariances)
+    return np.asarray(result.poses_after_xytheta), "slam", None if cov is None else np.asarray(cov)
 
 
 def mapping_laser_poses(
@@ -184,6 +195,7 @@ def _map_and_score(
         p = gp.query(points, sort=sort).probability
         t2 = time.perf_counter()
         row[f"auc_{mapper}"] = roc_auc(p, labels)
+        row[f"log_loss_{mapper}"] = log_loss(p, labels)
         if observed is not None:
             split.update(_split_aucs(p, labels, observed, mapper))
         row[f"{mapper}_train_s"] = t1 - t0
@@ -193,11 +205,21 @@ def _map_and_score(
     t0 = time.perf_counter()
     p_grid = MapBuilder.from_config(cfg).grid(beams, grid_bounds).query(points)
     row["auc_grid"] = roc_auc(p_grid, labels)
+    row["log_loss_grid"] = log_loss(p_grid, labels)
     row["grid_s"] = time.perf_counter() - t0
     if observed is not None:
         split.update(_split_aucs(p_grid, labels, observed, "grid"))
     row.update(split)
     return row
+
+
+def log_loss_means(rows: list[dict[str, Any]]) -> dict[str, float | None]:
+    """{gppol, gpfol, grid}: the mean over the per-seed ``rows`` of ``log_loss_*`` (None where absent)."""
+    out: dict[str, float | None] = {}
+    for k in ("gppol", "gpfol", "grid"):
+        values = [r[f"log_loss_{k}"] for r in rows if r.get(f"log_loss_{k}") is not None]
+        out[k] = float(np.mean(values)) if values else None
+    return out
 
 
 def observed_means(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -355,7 +377,9 @@ def evaluate_map(
     config = load_config(config_path, {"input": {"scan_topic": scan_topic}})
     cfg = config.mapping
     rec = open_dataset(input_path, config.input)
-    base_poses, pose_source, cov = mapping_poses(rec, input_path, config.slam, progress)
+    base_poses, pose_source, cov = mapping_poses(
+        rec, input_path, config.slam, progress, cfg.gppol.pose_covariances
+    )
     if gt is not None:
         protocol = "ground_truth"
         used_seeds: list[int] = []
@@ -369,7 +393,7 @@ def evaluate_map(
     if perturb_poses is not None:
         pose_cov = f"diag({perturb_poses[0]}^2, {perturb_poses[0]}^2, {perturb_poses[1]}^2) (perturbed poses)"
     elif cov is not None:
-        pose_cov = "SLAM marginals"
+        pose_cov = f"SLAM {cfg.gppol.pose_covariances} covariances"
     else:
         pose_cov = "none (exact reference poses)"
     table: dict[str, Any] = {
@@ -401,6 +425,7 @@ def evaluate_map(
         "poses": pose_source,
         "perturb_poses": None if perturb_poses is None else list(perturb_poses),
         "gppol_pose_covariance": pose_cov,
+        "log_loss": log_loss_means(rows),
         **seen,
         "per_seed": rows,
         "table": table,

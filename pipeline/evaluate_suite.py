@@ -57,12 +57,14 @@ from datasets.registry import guess_format, open_dataset
 from datasets.types import Recording
 from mapping.config import MappingConfig
 from mapping.evaluation import HOLDOUT_BLOCK, holdout_block_scans
+from pipeline.artifacts import mapper_covariances
 from pipeline.config import Config, load_config
 from pipeline.errors import PipelineError
 from pipeline.evaluate_map import (
     DEFAULT_SEEDS,
     evaluate_ground_truth,
     evaluate_holdout,
+    log_loss_means,
     observed_means,
     reference_base_poses,
 )
@@ -350,6 +352,7 @@ def _map_result(out: dict[str, Any], protocol: str, seeds: list[int], poses: str
         "protocol": protocol,
         "seeds": list(seeds) if protocol == "holdout" else [],
         "auc": {k: float(np.mean([r[f"auc_{k}"] for r in rows])) for k in ("gppol", "gpfol", "grid")},
+        "log_loss": log_loss_means(rows),
         **observed_means(rows),
         "poses": poses,
         "gppol_pose_covariance": pose_cov,
@@ -488,14 +491,17 @@ def _evaluate(
     if slam_only:
         row["maps"] = _maps_skipped("--slam-only")
         return
-    if ref is None:
-        row["maps"] = _maps_skipped("no reference")
-        return
     cfg = config.mapping
     progress = _BarProgress(bar)
+    mode = cfg.gppol.pose_covariances
+    slam_cov = mapper_covariances(result, "after", mode)
+    pose_cov = f"SLAM {mode} covariances (aligned)" if slam_cov is not None else "none (laser noise only)"
+    if ref is None:
+        _own_maps_only(row, rec, result, slam_cov, cfg, seeds, progress)
+        return
     truth = reference_base_poses(ref, Path(reference_path))
     ours = np.asarray(result.poses_after_xytheta)[scans]
-    our_cov = np.asarray(result.cov_after_xytheta)[scans]
+    our_cov = None if slam_cov is None else np.asarray(slam_cov)[scans]
     maps: dict[str, Any] = {"reference_poses": None, "slam_poses": None, "slam_poses_own_test_points": None}
     row["maps"] = maps
     if gt is not None:
@@ -511,7 +517,7 @@ def _evaluate(
             raise PipelineError(f"{ref.source}: {int(np.sum(~matched))} scans have no SLAM pose to map")
         by_slam = evaluate_ground_truth(ref, base, gt, gt_path, cfg, progress, cov=cov)
         by_slam["alignment_xytheta"] = align.tolist()
-        maps["slam_poses"] = _map_result(by_slam, "ground_truth", [], "slam", "SLAM marginals (aligned)")
+        maps["slam_poses"] = _map_result(by_slam, "ground_truth", [], "slam", pose_cov)
         timings["maps_slam_s"] = time.perf_counter() - t0
         return
     n_ref = len(ref.scans)
@@ -531,7 +537,7 @@ def _evaluate(
     by_slam = evaluate_slam_poses(
         ref, reference_path, rows, ours, our_cov, rec.laser_in_base_xytheta, seeds, cfg, progress, block
     )
-    maps["slam_poses"] = _map_result(by_slam, "holdout", seeds, "slam", "SLAM marginals (aligned)")
+    maps["slam_poses"] = _map_result(by_slam, "holdout", seeds, "slam", pose_cov)
     timings["maps_slam_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     by_self = evaluate_slam_poses(
@@ -547,10 +553,40 @@ def _evaluate(
         block,
         "slam",
     )
-    maps["slam_poses_own_test_points"] = _map_result(
-        by_self, "holdout", seeds, "slam", "SLAM marginals (aligned)"
-    )
+    maps["slam_poses_own_test_points"] = _map_result(by_self, "holdout", seeds, "slam", pose_cov)
     timings["maps_slam_own_s"] = time.perf_counter() - t0
+
+
+def _own_maps_only(
+    row: dict[str, Any],
+    rec: Recording,
+    result: Any,
+    slam_cov: FloatArray | None,
+    cfg: MappingConfig,
+    seeds: list[int],
+    progress: Progress,
+) -> None:
+    """The map score of a recording without any reference (SPEC section 6, "own test points"): the
+    hold-out protocol with our SLAM's poses after loop closure for the training scans and the test points
+    alike, where it has at least 100 scans."""
+    n = len(rec.scans)
+    block = holdout_block_scans(n)
+    maps: dict[str, Any] = {"reference_poses": None, "slam_poses": None, "slam_poses_own_test_points": None}
+    row["maps"] = maps
+    if block is None:
+        maps["skipped"] = f"{n} scans: too few for the hold-out protocol (under 100)"
+        row["notes"].append(f"no maps: {n} scans")
+        return
+    if block != HOLDOUT_BLOCK:
+        row["notes"].append(f"maps: blocks of {block} scans")
+    t0 = time.perf_counter()
+    ours = np.asarray(result.poses_after_xytheta)
+    cov = None if slam_cov is None else np.asarray(slam_cov)
+    by_self = evaluate_holdout(rec, ours, seeds, cfg, progress, cov, block_scans=block)
+    mode = cfg.gppol.pose_covariances
+    pose_cov = f"SLAM {mode} covariances" if cov is not None else "none (laser noise only)"
+    maps["slam_poses_own_test_points"] = _map_result(by_self, "holdout", seeds, "slam", pose_cov)
+    row["timings_s"]["maps_slam_own_s"] = time.perf_counter() - t0
 
 
 # ------------------------------------------------------------------------------------------- the suite

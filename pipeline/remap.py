@@ -10,7 +10,8 @@ Inputs come from the run folder: the scans (``scans.npz``), the configuration, t
   ``trajectory/pose_graph.g2o``, also after a round trip through GTSAM's ``readG2o`` / ``writeG2o``); scans
   between keyframes keep their offset from their keyframe in the run's optimised trajectory.
 
-``--covariances`` replaces the covariances (per-scan ``scan_after`` or keyframe ``after`` arrays, see
+``--covariances`` replaces the covariances GPPOL maps with (``mapping.gppol.pose_covariances``: the
+per-scan ``scan_relative_after`` arrays, else the world-frame ``scan_after`` or keyframe ``after`` ones, see
 :mod:`pipeline.artifacts`). The scans mapped are those the run mapped (selected by motion along the run's
 odometry trajectory, as ``run`` selects them).
 
@@ -44,7 +45,7 @@ from pipeline.artifacts import (
     TRAJECTORY_DIR,
     covariances_at,
     read_keyframe_indices,
-    read_scan_covariances,
+    read_mapper_covariances,
     read_scans,
 )
 from pipeline.config import load_config, write_config
@@ -187,9 +188,12 @@ def remap_run(
         else:
             raise PipelineError(f"{poses}: --poses must be a .g2o or a .tum file")
         cov_file = Path(covariances) if covariances is not None else traj_dir / COVARIANCES_NPZ
-        cov_stamps, cov = read_scan_covariances(cov_file, "after")
-        new_cov = covariances_at(scans.stamps_ns, cov_stamps, cov)
-        _, run_cov = read_scan_covariances(traj_dir / COVARIANCES_NPZ, "after")
+        mode = cfg.gppol.pose_covariances
+        new_cov = run_cov = None
+        if mode != "none":
+            cov_stamps, cov = read_mapper_covariances(cov_file, "after", mode)
+            new_cov = covariances_at(scans.stamps_ns, cov_stamps, cov)
+            _, run_cov = read_mapper_covariances(traj_dir / COVARIANCES_NPZ, "after", mode)
         try:
             params = GPParams.load(params_path(run_dir / "maps"))
         except (OSError, ParamsFileError) as exc:

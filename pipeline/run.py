@@ -1,5 +1,6 @@
-"""``run`` and ``demo``: read -> odometry -> pose graph -> marginals -> GP maps before and after loop
-closure -> the run folder of SPEC section 4.
+"""``run`` and ``demo``: read -> odometry -> pose graph -> marginals and the mapper's covariances (each
+scan relative to the earlier passes over its places) -> GP maps before and after loop closure -> the run
+folder of SPEC section 4.
 
 Stages and their owners: reading (:mod:`datasets`), SLAM (:func:`slam.system.run_slam_recording`), maps
 (:class:`mapping.build.MapBuilder`), exports (:mod:`pipeline.map_exports`). This module
@@ -24,11 +25,17 @@ from mapping.evaluation import rendered_ground_truth_auc
 from mapping.exports import MapLayers
 from mapping.tiling import IncrementalMap, TileRenderer, render_serial
 from mapping.train import GPParams
-from pipeline.artifacts import SCANS_FILE, TRAJECTORY_DIR, write_scans, write_trajectories
+from pipeline.artifacts import (
+    SCANS_FILE,
+    TRAJECTORY_DIR,
+    mapper_covariances,
+    write_scans,
+    write_trajectories,
+)
 from pipeline.config import Config, load_config, write_config
 from pipeline.errors import stage_boundary
 from pipeline.map_bounds import check_map_cells, scan_reach_m, snap_to_lattice, union_bounds
-from pipeline.map_exports import write_maps
+from pipeline.map_exports import classify_layers, write_maps
 from pipeline.progress import Progress
 from pipeline.report import write_report
 from pipeline.run_folder import check_output_dir, params_path, staged_run_folder, write_summary
@@ -201,9 +208,9 @@ def run_pipeline(
         # Map with the poses as the run folder stores them (TUM text), so that ``remap`` with the run's own
         # trajectory reproduces these maps bit for bit.
         stored = {"before": read_tum(files["odometry"]), "after": read_tum(files["optimized"])}
+        mode = config.mapping.gppol.pose_covariances
         trajectories = {
-            "before": (stored["before"][1], slam.cov_before_xytheta),
-            "after": (stored["after"][1], slam.cov_after_xytheta),
+            which: (stored[which][1], mapper_covariances(slam, which, mode)) for which in ("before", "after")
         }
         with stage_boundary("mapping", input_path), tile_engine(config.scale) as renderer:
             layers, maps, params, bounds = build_maps(
@@ -226,7 +233,13 @@ def run_pipeline(
                 ate_m=metrics["ate_rmse_m"],
             )
             bar.advance()
-        summary = make_summary(input_path, rec, slam, config, layers["after"], bounds, params, metrics, timer)
+        shares = {
+            name: classify_layers(m, params, config.mapping, config.export).cell_shares()
+            for name, m in layers.items()
+        }
+        summary = make_summary(
+            input_path, rec, slam, config, layers["after"], bounds, params, metrics, timer, shares
+        )
         summary["tiles"] = tiles_summary(maps, config)
         if config.export.png:
             write_report(stage, summary)
@@ -280,10 +293,12 @@ def make_summary(
     params: GPParams,
     metrics: dict[str, Any],
     timer: StageTimer,
+    cell_shares: dict[str, dict[str, float]] | None = None,
 ) -> dict[str, Any]:
-    """``summary.json``: counts, timings, loop closures, metrics, map geometry, how the reader recognised
-    no-return readings (``no_return``: the reader's ``meta["no_return"]``, None if it says nothing), and a
-    ``table``."""
+    """``summary.json``: counts, timings, loop closures, metrics, map geometry, the shares of each map's
+    cells the planners' classification calls occupied / free / unknown (``cell_shares``, by map name:
+    :meth:`mapping.exports.MapLayers.cell_shares`), how the reader recognised no-return readings
+    (``no_return``: the reader's ``meta["no_return"]``, None if it says nothing), and a ``table``."""
     timings = dict(timer.seconds)
     no_return = rec.meta.get("no_return") if isinstance(rec.meta, dict) else None
     timings["total"] = timer.total()
@@ -305,10 +320,19 @@ def make_summary(
         if auc is None
         else f"{auc['before']:.4f} / {auc['after']:.4f}",
         "map": (
-            f"{after.shape[1]} x {after.shape[0]} cells at {after.resolution_m} m ({config.mapping.mapper})"
+            f"{after.shape[1]} x {after.shape[0]} cells at {after.resolution_m} m ({config.mapping.mapper}"
+            + (
+                f", {config.mapping.gppol.pose_covariances} pose covariances)"
+                if config.mapping.mapper == "gppol"
+                else ")"
+            )
         ),
         "no-return readings": _no_return_text(no_return),
     }
+    for name, share in (cell_shares or {}).items():
+        table[f"cells occupied / free / unknown, {name} (%)"] = (
+            f"{100 * share['occupied']:.1f} / {100 * share['free']:.1f} / {100 * share['unknown']:.1f}"
+        )
     for name, sec in timings.items():
         table[f"wall time {name} (s)"] = round(sec, 2)
     table["real-time factor"] = round(data_s / timings["total"], 1) if timings["total"] > 0 else None
@@ -335,6 +359,8 @@ def make_summary(
             "bounds_xy_m": list(bounds),
             # p(occ) the link gives where no data reach (mu = 0, prior variance): unobserved cells read so
             "unseen_probability": params.unseen_probability,
+            "pose_covariances": config.mapping.gppol.pose_covariances,
+            "cell_shares": cell_shares or {},
         },
         "params": params.to_dict(),
         "slam": s,
