@@ -173,6 +173,15 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--relations", type=Path, help="relations file: t1 t2 x y z roll pitch yaw")
     g.add_argument("--reference", type=Path, help="reference log (e.g. a GMapping-corrected CARMEN log)")
     q.add_argument("--config", type=Path, help="YAML configuration")
+    q.add_argument(
+        "--inject-false-closures",
+        type=float,
+        metavar="FRACTION",
+        help="fault injection: add FRACTION x (accepted closures) wrong closures (random keyframe pairs, "
+        "off by 2-20 m and up to 90 deg, with the information of real ones) before the final optimisation; "
+        "the report says how many the back end kept",
+    )
+    q.add_argument("--seed", type=int, default=0, help="seed of the injected closures (default 0)")
     _add_json(q)
     q = ev.add_parser(
         "suite",

@@ -234,6 +234,8 @@ def cmd_evaluate(args: argparse.Namespace, emit_json: EmitJson) -> int:
         reference_path=args.reference,
         config_path=args.config,
         progress=progress,
+        inject_false_closures=args.inject_false_closures,
+        seed=args.seed,
     )
     return _report(result, args, emit_json, f"SLAM evaluation of {args.input}")
 

@@ -49,9 +49,23 @@ def evaluate_slam(
     reference_path: str | Path | None = None,
     config_path: str | Path | None = None,
     progress: Progress | None = None,
+    inject_false_closures: float | None = None,
+    seed: int = 0,
 ) -> dict[str, Any]:
-    """Run SLAM on ``input_path`` and score it against a relations file or a reference recording."""
+    """Run SLAM on ``input_path`` and score it against a relations file or a reference recording.
+
+    ``inject_false_closures``: fault injection, that share of the accepted closures' count added as wrong
+    closures before the final optimisation (:mod:`slam.faults`, seeded with ``seed``);
+    ``slam.fault_injection`` in the result says how many the back end kept."""
     from datasets.relations import read_relations
+    from slam.faults import FalseClosures
+
+    faults = None
+    if inject_false_closures is not None:
+        try:
+            faults = FalseClosures(float(inject_false_closures), int(seed))
+        except ValueError as exc:
+            raise PipelineError(f"--inject-false-closures: {exc}") from None
 
     progress = progress or Progress()
     config = load_config(config_path)
@@ -69,7 +83,9 @@ def evaluate_slam(
         scans = rows = None
     if relations is not None:
         rel_match = match_relations(rec, relations, relations_path)
-    out, result = slam_and_score(rec, ref, scans, rows, reference_path, config.slam, progress)
+    if faults is not None and rec.clouds is not None and len(rec.clouds) > 0:
+        raise PipelineError(f"{input_path}: false-closure injection needs planar scans, not 3D clouds")
+    out, result = slam_and_score(rec, ref, scans, rows, reference_path, config.slam, progress, faults)
     if ref is not None:
         out["reference"]["scan_matching"] = scan_matching
     if relations is not None:
@@ -86,6 +102,7 @@ def slam_and_score(
     reference_path: str | Path | None,
     slam_config: Any = None,
     progress: Progress | None = None,
+    faults: Any = None,
 ) -> tuple[dict[str, Any], SlamResult]:
     """Run the SLAM stage on ``rec`` and score it against ``ref`` (None: no reference) on the ``scans`` of
     ``rec`` matched to the ``rows`` of ``ref.reference`` (:func:`match_reference`).
@@ -93,7 +110,7 @@ def slam_and_score(
     Returns the dict of :func:`evaluate_slam` without ``table`` (``relations`` null, ``ate_rmse_m`` null
     without a reference; ``slam``: counts, timings, ``wall_s`` and ``realtime_factor``) and the result."""
     t0 = time.perf_counter()
-    result = run_slam_recording(rec, slam_config, progress)
+    result = run_slam_recording(rec, slam_config, progress, faults)
     wall_s = time.perf_counter() - t0
     out: dict[str, Any] = {"relations": None, "ate_rmse_m": None}
     if ref is not None:
@@ -296,5 +313,9 @@ def _table(out: dict[str, Any]) -> dict[str, Any]:
     rows["scans / keyframes"] = f"{s['scans']} / {s['keyframes']}"
     closures = f"{s['loop_closures_accepted']} / {s['loop_closures_rejected']}"
     rows["loop closures accepted / rejected"] = closures
+    rows["loop closures dropped by the back end"] = s.get("loop_closures_dropped_by_back_end", 0)
+    fi = s.get("fault_injection")
+    if fi:
+        rows["injected false closures: kept / injected"] = f"{fi['kept']} / {fi['injected']}"
     rows["SLAM wall time (s)"] = s["wall_s"]
     return rows

@@ -355,6 +355,19 @@ class GraphConfig(BaseModel):
         "levenberg_marquardt", description="batch optimisation after the incremental (iSAM2) pass"
     )
     max_iterations: int = Field(100, ge=1, description="Levenberg-Marquardt iterations")
+    outlier_rejection: Literal["gnc", "none"] = Field(
+        "gnc",
+        description="how the final optimisation decides which loop closures stay: 'gnc' graduated "
+        "non-convexity with a truncated least-squares loss over the closures (odometry and prior known "
+        "inliers; slam.graph.gnc_loop_inliers), 'none' keep every verified closure under its robust loss",
+    )
+    gnc_inlier_probability: float = Field(
+        0.99,
+        gt=0,
+        lt=1,
+        description="a closure stays an inlier of the graduated non-convexity solve while its whitened "
+        "error (covariances x the variance factor) is within this chi-square quantile (3 dof)",
+    )
 
 
 class CloudLoopClosureConfig(BaseModel):

@@ -289,6 +289,47 @@ class PoseGraph:
         return float(self.graph.error(self._estimate))
 
 
+def gnc_loop_inliers(
+    edges: list[Edge], initial_xytheta: FloatArray, inlier_probability: float, max_iterations: int = 100
+) -> tuple[NDArray[np.bool_], FloatArray]:
+    """Which loop closures a graduated non-convexity solve keeps, and its estimate (K, 3).
+
+    GTSAM's ``GncOptimizer`` (Yang, Antonante, Tzoumas & Carlone, RA-L 2020) with the truncated least
+    squares loss over the loop closures, the prior and the odometry chain known inliers: it starts from the
+    convex (least-squares) problem and makes the loss non-convex step by step, so that closures which
+    disagree with the chain and with each other lose their weight together instead of one by one. A factor
+    is an inlier while its whitened error stays below the chi-square quantile ``inlier_probability`` (3
+    degrees of freedom); loops are given without their robust loss (GNC is the robust loss). Returns
+    ``(keep (E,) bool: True for every non-loop edge and the loops GNC weighs >= 0.5, estimate)``."""
+    graph = gtsam.NonlinearFactorGraph()
+    known: list[int] = []
+    for i, e in enumerate(edges):
+        noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(e.cov, dtype=np.float64))
+        if e.kind == "prior":
+            graph.add(gtsam.PriorFactorPose2(e.key_from, _pose(e.measurement_xytheta), noise))
+        else:
+            graph.add(gtsam.BetweenFactorPose2(e.key_from, e.key_to, _pose(e.measurement_xytheta), noise))
+        if e.kind != "loop":
+            known.append(i)
+    values = gtsam.Values()
+    for k, p in enumerate(np.asarray(initial_xytheta, dtype=np.float64)):
+        values.insert(k, _pose(p))
+    lm = gtsam.LevenbergMarquardtParams()
+    lm.setMaxIterations(max_iterations)
+    params = gtsam.GncLMParams(lm)
+    params.setLossType(gtsam.GncLossType.TLS)
+    params.setKnownInliers(known)
+    try:
+        gnc = gtsam.GncLMOptimizer(graph, values, params)
+        gnc.setInlierCostThresholdsAtProbability(inlier_probability)
+        result = gnc.optimize()
+    except RuntimeError as exc:
+        raise PoseGraphError(f"pose graph (graduated non-convexity): {_first_line(exc)}") from None
+    weights = np.asarray(gnc.getWeights(), dtype=np.float64)
+    keep = np.array([e.kind != "loop" for e in edges]) | (weights >= 0.5)
+    return keep, _values_to_array(result, len(initial_xytheta))
+
+
 def _first_line(exc: BaseException) -> str:
     lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
     return " ".join(lines[:2]) if lines else type(exc).__name__

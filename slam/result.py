@@ -55,6 +55,8 @@ class SlamResult:
     graph_edges: tuple[Edge, ...]
     variance_factor: float = 1.0
     timings_s: dict[str, float] = field(default_factory=dict)
+    loop_closures_dropped: int = 0  # accepted by verification, then dropped by the robust back end
+    fault_injection: dict | None = None  # evaluate slam --inject-false-closures: injected / kept
     wheel_odometry: str = "as given"  # where the wheel odometry came from (:func:`wheel_odometry`)
     # 3D inputs only (:mod:`slam.system3d`): (N, 4, 4) poses, (N, 6, 6) and (K, 6, 6) world-frame
     # (x, y, z, rx, ry, rz) covariances; the 2D fields above are their SE(2) projections
@@ -79,7 +81,9 @@ class SlamResult:
             "keyframes": len(self.keyframe_scans),
             "loop_closures_accepted": len(self.loop_closures),
             "loop_closures_rejected": len(self.rejected_loop_closures),
+            "loop_closures_dropped_by_back_end": self.loop_closures_dropped,
             "odometry_fallbacks": int(np.sum(self.odometry_status >= 2)),
             "wheel_odometry": self.wheel_odometry,
             "timings_s": dict(self.timings_s),
+            **({"fault_injection": dict(self.fault_injection)} if self.fault_injection is not None else {}),
         }

@@ -2,8 +2,9 @@
 
 Steps and their modules: scan-to-submap odometry (:mod:`slam.odometry`), keyframes by travel and rotation
 (:mod:`slam.keyframes`), odometry factors whose covariance comes from the registrations, the incremental
-pose graph with loop-closure search after every keyframe (:mod:`slam.graph`, :mod:`slam.loop_closure`),
-a final batch optimisation, marginals of every keyframe, and the pose and covariance of every scan.
+pose graph with loop-closure search after every keyframe (:class:`ClosureSearch`, :mod:`slam.graph`,
+:mod:`slam.loop_closure`), a robust batch optimisation in which graduated non-convexity decides which
+closures stay (:func:`robust_batch`), marginals of every keyframe, and the pose and covariance of every scan.
 
 Covariances leaving this module are world-frame (x, y, theta) (SPEC section 2). "Before" is the odometry
 chain alone (first-order propagation of the factor covariances, equal to the marginals of the chain graph),
@@ -17,7 +18,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,10 +28,11 @@ from datasets.types import Recording, ScanSequence, Trajectory
 from slam import geometry as se2
 from slam.config import GraphConfig, SlamConfig
 from slam.consistency import keyframe_consistency_body
-from slam.graph import Edge, PoseGraph, edge_errors2
+from slam.faults import INJECTED, FalseClosures, false_closures
+from slam.graph import Edge, PoseGraph, edge_errors2, gnc_loop_inliers
 from slam.keyframes import keyframe_offsets, relative_cov_body, select_keyframes
 from slam.loop_closure import LoopCloser, LoopClosure
-from slam.odometry import run_odometry, scans_points_base
+from slam.odometry import OdometryResult, run_odometry, scans_points_base
 from slam.result import SlamResult
 
 FloatArray = NDArray[np.float64]
@@ -49,17 +51,23 @@ def wheel_poses_at_scans(odometry: Trajectory, stamps_ns: NDArray[np.int64]) -> 
 
 
 def run_slam_recording(
-    recording: Recording, config: SlamConfig | None = None, progress: ProgressLike | None = None
+    recording: Recording,
+    config: SlamConfig | None = None,
+    progress: ProgressLike | None = None,
+    faults: FalseClosures | None = None,
 ) -> SlamResult:
     """SLAM on whatever a recording holds: its 3D clouds (KISS-ICP + ``Pose3`` graph,
     :func:`slam.system3d.run_slam_clouds`) when it has them, else its planar scans and wheel odometry
-    (:func:`run_slam`). The result has the same contract either way."""
+    (:func:`run_slam`). The result has the same contract either way. ``faults``: wrong closures to inject
+    (:mod:`slam.faults`; planar scans only)."""
     if recording.clouds is not None and len(recording.clouds) > 0:
         from slam.system3d import run_slam_clouds
 
+        if faults is not None:
+            raise ValueError("false-closure injection is implemented for planar scans, not for 3D clouds")
         return run_slam_clouds(recording.clouds, config, progress)
     wheel, wheel_source = wheel_odometry(recording)
-    result = run_slam(recording.scans, wheel, recording.laser_in_base_xytheta, config, progress)
+    result = run_slam(recording.scans, wheel, recording.laser_in_base_xytheta, config, progress, faults)
     return replace(result, wheel_odometry=wheel_source)
 
 
@@ -89,159 +97,332 @@ def run_slam(
     laser_in_base_xytheta: FloatArray,
     config: SlamConfig | None = None,
     progress: ProgressLike | None = None,
+    faults: FalseClosures | None = None,
 ) -> SlamResult:
     """Odometry, keyframes, loop closures, pose graph and marginals for one recording.
 
     ``scans``: the planar scans in order; ``odometry``: wheel odometry (per scan or denser; None without
     wheels); ``laser_in_base_xytheta`` (3,): the laser's mounting on the base. Poses are of the base.
+    ``faults``: wrong closures handed to the back end before its final optimisation (:mod:`slam.faults`).
+    The stages, each a named step below: scan points, odometry, keyframes, loop-closure search on the
+    incremental graph, dense verification, (fault injection), robust batch optimisation, marginals,
+    consistency covariances, per-scan poses and covariances.
     """
     cfg = config or SlamConfig()
-    oc = cfg.odometry
-    gc = cfg.graph
     timings: dict[str, float] = {}
-    n = len(scans)
     stamps = np.asarray(scans.stamps_ns, dtype=np.int64)
     mount = np.asarray(laser_in_base_xytheta, dtype=np.float64)
 
     t0 = time.perf_counter()
-    points = scans_points_base(scans, mount, oc)
+    points = scans_points_base(scans, mount, cfg.odometry)
     wheel = wheel_poses_at_scans(odometry, stamps) if odometry is not None and len(odometry) else None
     timings["points_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    odo = run_odometry(points, wheel, oc, progress)
+    odo = run_odometry(points, wheel, cfg.odometry, progress)
     timings["odometry_s"] = time.perf_counter() - t0
     timings.update(odo.timings_s)
-    poses = odo.poses_xytheta
 
-    # keyframes and their odometry factors
-    kf = select_keyframes(poses, cfg.keyframe_distance_m, cfg.keyframe_rotation_rad)
-    k_count = len(kf)
-    floor = np.diag([gc.min_sigma_xy_m**2, gc.min_sigma_xy_m**2, gc.min_sigma_theta_rad**2])
-    rel = se2.between(poses[kf[:-1]], poses[kf[1:]])
-    fac_cov = (
-        relative_cov_body(
-            poses[kf[:-1]],
-            odo.cov_xytheta[kf[:-1]],
-            poses[kf[1:]],
-            odo.cov_xytheta[kf[1:]],
-            gc.odometry_cov_scale,
-        )
-        + floor
+    chain = keyframe_chain(odo, cfg)
+    search = ClosureSearch(odo, chain, cfg, mount)
+    t0 = time.perf_counter()
+    search.run(progress)
+    timings["loop_search_s"] = search.search_s
+    timings["graph_incremental_s"] = time.perf_counter() - t0 - search.search_s
+
+    t0 = time.perf_counter()
+    search.dense_pass()
+    timings["dense_pass_s"] = time.perf_counter() - t0
+
+    injected = search.inject(faults) if faults is not None else []
+
+    t0 = time.perf_counter()
+    batch = robust_batch(search.graph.estimate(), list(search.graph.edges), cfg.graph)
+    timings["graph_batch_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    with stage(progress, "marginals", None):
+        kf_cov_after_body = batch.graph.marginals_body()
+    timings["marginals_s"] = time.perf_counter() - t0
+    kf_cov_before_body = se2.propagate_chain_cov_body(
+        chain.increments_xytheta, chain.increment_covs * batch.scale, chain.prior_cov
     )
-    cov0 = np.diag([gc.prior_sigma_xy_m**2, gc.prior_sigma_xy_m**2, gc.prior_sigma_theta_rad**2])
 
-    # incremental graph with loop-closure search after every keyframe
     t0 = time.perf_counter()
-    t_search = 0.0
-    graph = PoseGraph()
-    graph.add_pose(poses[kf[0]])
-    graph.add_prior(0, poses[kf[0]], cov0)
-    graph.update()
-    est = np.zeros((k_count, 3))
-    est[0] = poses[kf[0]]
-    cov_w = np.zeros((k_count, 3, 3))  # world-frame marginals (unscaled) when each keyframe was added
-    cov_w[0] = cov0
-    loop_floor = np.diag([gc.loop_min_sigma_xy_m, gc.loop_min_sigma_xy_m, gc.loop_min_sigma_theta_rad]) ** 2
-    closer = LoopCloser(odo, kf, cfg.loop_closure, oc, gc.loop_cov_scale, mount, loop_floor)
-    lc = cfg.loop_closure
-    accepted: list[LoopClosure] = []
-    rejected: list[LoopClosure] = []
-    scale = 1.0  # running a-posteriori variance factor
+    kf_rel_before_body, kf_rel_after_body = keyframe_consistency_body(
+        chain.poses_xytheta,
+        batch.poses_xytheta,
+        batch.graph.edges,
+        [points[s] for s in chain.scans],
+        search.closer.path_m[chain.scans],
+        cfg.consistency,
+    )
+    timings["consistency_s"] = time.perf_counter() - t0
 
-    def add_loop(c: LoopClosure) -> None:
+    accepted, dropped = settle_closures(search.accepted, batch)
+    rejected = search.rejected + dropped
+    fault_report = None
+    if faults is not None:
+        kept = sum(c.reason == INJECTED for c in accepted)
+        fault_report = {
+            "fraction": faults.fraction,
+            "seed": faults.seed,
+            "injected": len(injected),
+            "kept": kept,
+        }
+
+    t0 = time.perf_counter()
+    per_scan = per_scan_covariances(
+        odo,
+        chain,
+        batch,
+        {
+            "cov_before": kf_cov_before_body,
+            "cov_after": kf_cov_after_body,
+            "relative_before": kf_rel_before_body,
+            "relative_after": kf_rel_after_body,
+        },
+        cfg.graph,
+    )
+    timings["per_scan_s"] = time.perf_counter() - t0
+    stages = (
+        "points_s",
+        "odometry_s",
+        "loop_search_s",
+        "graph_incremental_s",
+        "dense_pass_s",
+        "graph_batch_s",
+        "marginals_s",
+        "consistency_s",
+        "per_scan_s",
+    )
+    timings["total_s"] = sum(timings[k] for k in stages)
+
+    kf = chain.scans
+    return SlamResult(
+        stamps_ns=stamps,
+        poses_before_xytheta=odo.poses_xytheta.copy(),
+        poses_after_xytheta=per_scan["poses_after"],
+        cov_before_xytheta=per_scan["cov_before"],
+        cov_after_xytheta=per_scan["cov_after"],
+        relative_cov_before_xytheta=per_scan["relative_before"],
+        relative_cov_after_xytheta=per_scan["relative_after"],
+        odometry_status=odo.status,
+        keyframe_scans=kf,
+        keyframe_stamps_ns=stamps[kf],
+        keyframe_cov_before=_sym(se2.rotate_cov_to_world(chain.poses_xytheta, kf_cov_before_body)),
+        keyframe_cov_after=_sym(se2.rotate_cov_to_world(batch.poses_xytheta, kf_cov_after_body)),
+        loop_closures=tuple(accepted),
+        rejected_loop_closures=tuple(rejected),
+        graph_vertices_xytheta=batch.poses_xytheta,
+        graph_edges=tuple(batch.graph.edges),
+        variance_factor=batch.scale,
+        timings_s=timings,
+        loop_closures_dropped=len(dropped),
+        fault_injection=fault_report,
+    )
+
+
+@dataclass(frozen=True)
+class KeyframeChain:
+    """The keyframes of the odometry chain and the pose graph's odometry factors between them:
+    ``scans`` (K,) scan indices, ``poses_xytheta`` (K, 3) their odometry poses, ``increments_xytheta``
+    (K-1, 3) the relative poses between consecutive keyframes with covariances ``increment_covs``
+    (K-1, 3, 3, child frame), ``prior_cov`` (3, 3) of the first keyframe."""
+
+    scans: NDArray[np.int64]
+    poses_xytheta: FloatArray
+    increments_xytheta: FloatArray
+    increment_covs: FloatArray
+    prior_cov: FloatArray
+
+
+def keyframe_chain(odo: OdometryResult, cfg: SlamConfig) -> KeyframeChain:
+    """Keyframes by travel and rotation, and their odometry factors (the registrations' covariances
+    composed between keyframes, scaled, with a floor)."""
+    gc = cfg.graph
+    poses = odo.poses_xytheta
+    kf = select_keyframes(poses, cfg.keyframe_distance_m, cfg.keyframe_rotation_rad)
+    floor = np.diag([gc.min_sigma_xy_m**2, gc.min_sigma_xy_m**2, gc.min_sigma_theta_rad**2])
+    covs = relative_cov_body(
+        poses[kf[:-1]],
+        odo.cov_xytheta[kf[:-1]],
+        poses[kf[1:]],
+        odo.cov_xytheta[kf[1:]],
+        gc.odometry_cov_scale,
+    )
+    prior = np.diag([gc.prior_sigma_xy_m**2, gc.prior_sigma_xy_m**2, gc.prior_sigma_theta_rad**2])
+    return KeyframeChain(kf, poses[kf], se2.between(poses[kf[:-1]], poses[kf[1:]]), covs + floor, prior)
+
+
+class ClosureSearch:
+    """The incremental pose graph (iSAM2) and the loop-closure search after every keyframe.
+
+    :meth:`run` adds the keyframes one by one and, every ``search_spacing_m`` of travel, searches the
+    targets whose position the marginals (inflated by the running variance factor) make compatible, in
+    windows of the relative pose's own covariance (iSAM2's joint marginal); :meth:`dense_pass` verifies
+    every keyframe against the targets the (then consistent) graph puts near it; :meth:`inject` adds wrong
+    closures for fault injection. Closures enter the graph with their robust loss."""
+
+    def __init__(self, odo: OdometryResult, chain: KeyframeChain, cfg: SlamConfig, mount: FloatArray) -> None:
+        gc = cfg.graph
+        self.cfg = cfg
+        self.chain = chain
+        k_count = len(chain.scans)
+        self.graph = PoseGraph()
+        self.graph.add_pose(chain.poses_xytheta[0])
+        self.graph.add_prior(0, chain.poses_xytheta[0], chain.prior_cov)
+        self.graph.update()
+        self.est = np.zeros((k_count, 3))
+        self.est[0] = chain.poses_xytheta[0]
+        self.cov_w = np.zeros(
+            (k_count, 3, 3)
+        )  # world-frame marginals (unscaled) when each keyframe was added
+        self.cov_w[0] = chain.prior_cov
+        loop_floor = (
+            np.diag([gc.loop_min_sigma_xy_m, gc.loop_min_sigma_xy_m, gc.loop_min_sigma_theta_rad]) ** 2
+        )
+        self.closer = LoopCloser(
+            odo, chain.scans, cfg.loop_closure, cfg.odometry, gc.loop_cov_scale, mount, loop_floor
+        )
+        self.accepted: list[LoopClosure] = []
+        self.rejected: list[LoopClosure] = []
+        self.scale = 1.0  # running a-posteriori variance factor
+        self.search_s = 0.0
+        self._last_closure_path_m = -math.inf
+        self._last_search_path_m = -math.inf
+
+    def add_loop(self, c: LoopClosure) -> None:
         """An accepted closure as a robust factor, its kernel width grown with the current variance factor."""
-        width = lc.robust_kernel_width * math.sqrt(max(scale, 1.0))
+        lc = self.cfg.loop_closure
+        width = lc.robust_kernel_width * math.sqrt(max(self.scale, 1.0))
         cov = np.linalg.inv(c.information)
-        graph.add_between(
-            "loop",
-            c.target_keyframe,
-            c.query_keyframe,
-            c.relative_xytheta,
-            cov,
-            robust=lc.robust_kernel,
+        self.graph.add_between(
+            "loop", c.target_keyframe, c.query_keyframe, c.relative_xytheta, cov, robust=lc.robust_kernel,
             robust_width=width,
+        )  # fmt: skip
+
+    def run(self, progress: ProgressLike | None = None) -> None:
+        """Every keyframe after the first: add it with its odometry factor, then search closures from it."""
+        with stage(progress, "loop closure", len(self.chain.scans)) as bar:
+            for k in range(1, len(self.chain.scans)):
+                self.add_keyframe(k)
+                if self.cfg.loop_closure.enabled and self._spaced(k):
+                    ts = time.perf_counter()
+                    self.search(k)
+                    self.search_s += time.perf_counter() - ts
+                bar.advance()
+
+    def add_keyframe(self, k: int) -> None:
+        """Keyframe ``k`` and its odometry factor, optimised incrementally."""
+        g, c = self.graph, self.chain
+        g.add_pose(se2.compose(self.est[k - 1], c.increments_xytheta[k - 1]))
+        g.add_between("odometry", k - 1, k, c.increments_xytheta[k - 1], c.increment_covs[k - 1])
+        g.update()
+        self.est[k] = g.estimate_of(k)
+        self.cov_w[k] = se2.rotate_cov_to_world(self.est[k], g.marginal_body(k))
+
+    def _spaced(self, k: int) -> bool:
+        lc = self.cfg.loop_closure
+        here_m = self.closer.path_m[self.chain.scans[k]]
+        return (
+            here_m - self._last_closure_path_m >= lc.closure_spacing_m
+            and here_m - self._last_search_path_m >= lc.search_spacing_m
         )
 
-    last_closure_path_m = -math.inf
-    last_search_path_m = -math.inf
-    with stage(progress, "loop closure", k_count) as bar:
-        for k in range(1, k_count):
-            graph.add_pose(se2.compose(est[k - 1], rel[k - 1]))
-            graph.add_between("odometry", k - 1, k, rel[k - 1], fac_cov[k - 1])
-            graph.update()
-            est[k] = graph.estimate_of(k)
-            cov_w[k] = se2.rotate_cov_to_world(est[k], graph.marginal_body(k))
-            here_m = closer.path_m[kf[k]]
-            spaced = (
-                here_m - last_closure_path_m >= lc.closure_spacing_m
-                and here_m - last_search_path_m >= lc.search_spacing_m
-            )
-            if lc.enabled and spaced:
-                last_search_path_m = here_m
-                ts = time.perf_counter()
-                found = []
-                query = None
-                gate_scale = max(scale, lc.search_cov_inflation)
-                js = [j for j, _d2 in closer.candidates(k, est, cov_w * gate_scale)]
-                # the relative poses' own uncertainty (joint marginals): far below the sum of the two
-                # marginals once loops tie k and j together, so the search windows shrink with it
-                rel_covs = se2.rotate_cov_to_world(est[k], graph.relative_covs_body(js, k)) * gate_scale
-                for j, cov_rel_w in zip(js, rel_covs, strict=True):
-                    if not closer.within_reach(k, j, est, closer.window(cov_rel_w)[0]):
-                        continue
-                    if query is None:
-                        query = closer.query_points(k)
-                    closure = closer.match(k, j, est, cov_rel_w, query)
-                    (found if closure.accepted else rejected).append(closure)
-                    if len(found) >= lc.max_accepted_per_keyframe:
-                        break
-                t_search += time.perf_counter() - ts
-                for closure in found:
-                    add_loop(closure)
-                if found:
-                    last_closure_path_m = closer.path_m[kf[k]]
-                    accepted.extend(found)
-                    graph.update(extra_iterations=1)
-                    est[: k + 1] = graph.estimate()
-                    cov_w[k] = se2.rotate_cov_to_world(est[k], graph.marginal_body(k))
-                    if gc.estimate_variance_factor:
-                        scale = variance_factor(est[: k + 1], graph.edges, scale, gc)[0]
-            bar.advance()
-    timings["loop_search_s"] = t_search
-    timings["graph_incremental_s"] = time.perf_counter() - t0 - t_search
+    def search(self, k: int) -> None:
+        """Closures from keyframe ``k`` to the compatible earlier ones; the accepted ones enter the graph."""
+        lc, gc, closer = self.cfg.loop_closure, self.cfg.graph, self.closer
+        self._last_search_path_m = closer.path_m[self.chain.scans[k]]
+        found: list[LoopClosure] = []
+        query = None
+        gate_scale = max(self.scale, lc.search_cov_inflation)
+        js = [j for j, _d2 in closer.candidates(k, self.est, self.cov_w * gate_scale)]
+        # the relative poses' own uncertainty (joint marginals): far below the sum of the two marginals
+        # once loops tie k and j together, so the search windows shrink with it
+        rel_covs = se2.rotate_cov_to_world(self.est[k], self.graph.relative_covs_body(js, k)) * gate_scale
+        for j, cov_rel_w in zip(js, rel_covs, strict=True):
+            if not closer.within_reach(k, j, self.est, closer.window(cov_rel_w)[0]):
+                continue
+            if query is None:
+                query = closer.query_points(k)
+            closure = closer.match(k, j, self.est, cov_rel_w, query)
+            (found if closure.accepted else self.rejected).append(closure)
+            if len(found) >= lc.max_accepted_per_keyframe:
+                break
+        for closure in found:
+            self.add_loop(closure)
+        if found:
+            self._last_closure_path_m = closer.path_m[self.chain.scans[k]]
+            self.accepted.extend(found)
+            self.graph.update(extra_iterations=1)
+            self.est[: k + 1] = self.graph.estimate()
+            self.cov_w[k] = se2.rotate_cov_to_world(self.est[k], self.graph.marginal_body(k))
+            if gc.estimate_variance_factor:
+                self.scale = variance_factor(self.est[: k + 1], self.graph.edges, self.scale, gc)[0]
 
-    # dense pass: every keyframe against the targets the (now consistent) graph puts near it
-    t0 = time.perf_counter()
-    if lc.enabled and lc.dense_radius_m > 0 and accepted:
-        est = graph.estimate()
+    def dense_pass(self) -> None:
+        """Every keyframe against the targets the (now consistent) graph puts near it, verified in place."""
+        lc = self.cfg.loop_closure
+        if not (lc.enabled and lc.dense_radius_m > 0 and self.accepted):
+            return
+        est = self.graph.estimate()
         linked: dict[int, set[int]] = {}
-        for c in accepted:
+        for c in self.accepted:
             linked.setdefault(c.query_keyframe, set()).add(c.target_keyframe)
         dense: list[LoopClosure] = []
-        for k in range(k_count):
-            for j in closer.nearby(k, est, lc.dense_radius_m, linked.get(k, set()))[: lc.dense_targets]:
-                c = closer.verify_at(k, j, est, (cov_w[k] + cov_w[j]) * max(scale, lc.search_cov_inflation))
+        inflation = max(self.scale, lc.search_cov_inflation)
+        for k in range(len(self.chain.scans)):
+            for j in self.closer.nearby(k, est, lc.dense_radius_m, linked.get(k, set()))[: lc.dense_targets]:
+                c = self.closer.verify_at(k, j, est, (self.cov_w[k] + self.cov_w[j]) * inflation)
                 if c.accepted:
                     dense.append(c)
         for c in dense:
-            add_loop(c)
-        accepted.extend(dense)
-        graph.update(extra_iterations=1)
-    timings["dense_pass_s"] = time.perf_counter() - t0
+            self.add_loop(c)
+        self.accepted.extend(dense)
+        self.graph.update(extra_iterations=1)
 
-    # batch: re-weight every factor by the a-posteriori variance factor and solve again until it settles
-    t0 = time.perf_counter()
-    est = graph.estimate()
-    edges = list(graph.edges)
-    final = graph
+    def inject(self, faults: FalseClosures) -> list[LoopClosure]:
+        """Fault injection (evaluation only): wrong closures added to the graph as accepted ones."""
+        injected = false_closures(self.graph.estimate(), self.chain.scans, self.accepted, faults)
+        for c in injected:
+            self.add_loop(c)
+        self.accepted.extend(injected)
+        return injected
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    """The final optimisation: ``poses_xytheta`` (K, 3), the solved ``graph`` (kept factors, covariances x
+    ``scale``, the a-posteriori variance factor), and per loop closure of the input edges (L,) whether it
+    was ``kept`` and whether it is an ``inlier`` of the variance factor."""
+
+    poses_xytheta: FloatArray
+    graph: PoseGraph
+    scale: float
+    loop_kept: NDArray[np.bool_]
+    loop_inlier: NDArray[np.bool_]
+
+
+def robust_batch(initial_xytheta: FloatArray, edges: list[Edge], gc: GraphConfig) -> BatchResult:
+    """The robust batch: graduated non-convexity decides which closures stay (on covariances scaled by the
+    variance factor, :func:`slam.graph.gnc_loop_inliers`), then every kept factor is re-weighted by the
+    a-posteriori variance factor and the graph solved again (Levenberg-Marquardt) until it settles."""
+    est = np.asarray(initial_xytheta, dtype=np.float64)
+    is_loop = np.array([e.kind == "loop" for e in edges], dtype=bool)
+    kept = np.ones(len(edges), dtype=bool)
+    if gc.outlier_rejection == "gnc" and is_loop.any():
+        s0 = variance_factor(est, edges, 1.0, gc)[0] if gc.estimate_variance_factor else 1.0
+        scaled = [e if e.kind == "prior" else e.scaled(s0) for e in edges]
+        kept, est = gnc_loop_inliers(scaled, est, gc.gnc_inlier_probability, gc.max_iterations)
+    edges = [e for e, k in zip(edges, kept, strict=True) if k]
     scale = 1.0
     inliers = np.ones(len(edges), dtype=bool)
+    final = PoseGraph.from_edges(edges, est)
     for _ in range(gc.variance_factor_iterations if gc.estimate_variance_factor else 1):
-        if gc.estimate_variance_factor:
-            new_scale, inliers = variance_factor(est, edges, scale, gc)
-        else:
-            new_scale = 1.0
+        new_scale, inliers = (
+            variance_factor(est, edges, scale, gc) if gc.estimate_variance_factor else (1.0, inliers)
+        )
         final = PoseGraph.from_edges([e if e.kind == "prior" else e.scaled(new_scale) for e in edges], est)
         if gc.final_optimizer == "levenberg_marquardt":
             est = final.optimize_batch(gc.max_iterations)
@@ -249,83 +430,54 @@ def run_slam(
         scale = new_scale
         if converged:
             break
-    timings["graph_batch_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    with stage(progress, "marginals", None):
-        kf_cov_after_body = final.marginals_body()
-    timings["marginals_s"] = time.perf_counter() - t0
-    kf_cov_before_body = se2.propagate_chain_cov_body(rel, fac_cov * scale, cov0)
-    t0 = time.perf_counter()
-    kf_rel_before_body, kf_rel_after_body = keyframe_consistency_body(
-        poses[kf], est, final.edges, [points[s] for s in kf], closer.path_m[kf], cfg.consistency
-    )
-    timings["consistency_s"] = time.perf_counter() - t0
-    loop_edges = [e for e in edges if e.kind == "loop"]
-    loop_inlier = inliers[[i for i, e in enumerate(edges) if e.kind == "loop"]] if loop_edges else []
-    accepted = [
-        replace(c, information=c.information / scale, consistent=bool(ok))
-        for c, ok in zip(accepted, loop_inlier, strict=True)
-    ]
+    loop_kept = kept[is_loop]
+    loop_inlier = np.zeros(len(loop_kept), dtype=bool)
+    loop_inlier[loop_kept] = inliers[[i for i, e in enumerate(edges) if e.kind == "loop"]]
+    return BatchResult(est, final, scale, loop_kept, loop_inlier)
 
-    # every scan: its keyframe's pose and covariance composed with the odometry offset
-    t0 = time.perf_counter()
+
+def settle_closures(
+    accepted: list[LoopClosure], batch: BatchResult
+) -> tuple[list[LoopClosure], list[LoopClosure]]:
+    """``(kept, dropped)``: the closures the back end kept (information / the variance factor,
+    ``consistent`` when an inlier of it) and those it dropped (no longer accepted, the reason says why)."""
+    dropped = [
+        replace(c, accepted=False, reason=f"{c.reason}; dropped by the back end (graduated non-convexity)")
+        for c, k in zip(accepted, batch.loop_kept, strict=True)
+        if not k
+    ]
+    kept = [
+        replace(c, information=c.information / batch.scale, consistent=bool(ok))
+        for c, k, ok in zip(accepted, batch.loop_kept, batch.loop_inlier, strict=True)
+        if k
+    ]
+    return kept, dropped
+
+
+def per_scan_covariances(
+    odo: OdometryResult,
+    chain: KeyframeChain,
+    batch: BatchResult,
+    keyframe_covs_body: dict[str, FloatArray],
+    gc: GraphConfig,
+) -> dict[str, FloatArray]:
+    """Every scan: its keyframe's pose composed with the odometry offset (``poses_after`` (N, 3)), and each
+    keyframe covariance of ``keyframe_covs_body`` (name -> (K, 3, 3) body frame; ``*_before`` at the
+    odometry poses, the others after loop closure) composed with the offset's uncertainty, world frame."""
+    poses = odo.poses_xytheta
+    kf = chain.scans
     owner, offset = keyframe_offsets(kf, poses)
     anchor = kf[owner]
     off_cov = relative_cov_body(
-        poses[anchor], odo.cov_xytheta[anchor], poses, odo.cov_xytheta, gc.odometry_cov_scale * scale
+        poses[anchor], odo.cov_xytheta[anchor], poses, odo.cov_xytheta, gc.odometry_cov_scale * batch.scale
     )
-    off_cov[anchor == np.arange(n)] = 0.0
-    poses_after = se2.compose(est[owner], offset)
-    cov_before = se2.rotate_cov_to_world(
-        poses, se2.compose_cov_body(kf_cov_before_body[owner], offset, off_cov)
-    )
-    cov_after = se2.rotate_cov_to_world(
-        poses_after, se2.compose_cov_body(kf_cov_after_body[owner], offset, off_cov)
-    )
-    rel_before = se2.rotate_cov_to_world(
-        poses, se2.compose_cov_body(kf_rel_before_body[owner], offset, off_cov)
-    )
-    rel_after = se2.rotate_cov_to_world(
-        poses_after, se2.compose_cov_body(kf_rel_after_body[owner], offset, off_cov)
-    )
-    timings["per_scan_s"] = time.perf_counter() - t0
-    timings["total_s"] = (
-        sum(
-            timings[k]
-            for k in (
-                "points_s",
-                "odometry_s",
-                "loop_search_s",
-                "graph_incremental_s",
-                "dense_pass_s",
-                "graph_batch_s",
-                "marginals_s",
-                "consistency_s",
-            )
-        )
-        + timings["per_scan_s"]
-    )
-
-    return SlamResult(
-        stamps_ns=stamps,
-        poses_before_xytheta=poses.copy(),
-        poses_after_xytheta=poses_after,
-        cov_before_xytheta=_sym(cov_before),
-        cov_after_xytheta=_sym(cov_after),
-        relative_cov_before_xytheta=_sym(rel_before),
-        relative_cov_after_xytheta=_sym(rel_after),
-        odometry_status=odo.status,
-        keyframe_scans=kf,
-        keyframe_stamps_ns=stamps[kf],
-        keyframe_cov_before=_sym(se2.rotate_cov_to_world(poses[kf], kf_cov_before_body)),
-        keyframe_cov_after=_sym(se2.rotate_cov_to_world(est, kf_cov_after_body)),
-        loop_closures=tuple(accepted),
-        rejected_loop_closures=tuple(rejected),
-        graph_vertices_xytheta=est,
-        graph_edges=tuple(final.edges),
-        variance_factor=scale,
-        timings_s=timings,
-    )
+    off_cov[anchor == np.arange(len(poses))] = 0.0
+    poses_after = se2.compose(batch.poses_xytheta[owner], offset)
+    out = {"poses_after": poses_after}
+    for name, cov_body in keyframe_covs_body.items():
+        at = poses if name.endswith("_before") else poses_after
+        out[name] = _sym(se2.rotate_cov_to_world(at, se2.compose_cov_body(cov_body[owner], offset, off_cov)))
+    return out
 
 
 def variance_factor(
