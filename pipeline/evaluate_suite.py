@@ -20,6 +20,8 @@ Per recording (:func:`run_entry`):
   before / after loop closure, relations between consecutive reference scans, NEES), with the loop closures,
   the wall time, the real-time factor (null where the reader re-stamped most scans: synthetic stamps say
   nothing of the recording's duration) and the loop-search time with its share of the SLAM wall time.
+  Where the benchmark's relations lie beside the recording (``NAME.relations``, :func:`relations_beside`),
+  also their errors (``slam.relations``, as ``evaluate slam --relations``).
 - Maps, where the reference has at least 100 scans: the hold-out protocol on the reference poses (exactly
   ``evaluate map``) and on our own SLAM's poses after loop closure (SPEC section 6, "Maps from our own
   SLAM", :func:`evaluate_slam_poses`), and once more with the test points from our poses as well
@@ -68,7 +70,7 @@ from pipeline.evaluate_map import (
     observed_means,
     reference_base_poses,
 )
-from pipeline.evaluate_slam import match_reference_counted, slam_and_score
+from pipeline.evaluate_slam import match_reference_counted, match_relations, score_relations, slam_and_score
 from pipeline.progress import Progress, StageBar
 from slam import geometry as se2
 from slam.metrics import align_se2
@@ -94,6 +96,7 @@ class SuiteEntry:
     input_path: Path | None
     reference_path: Path | None = None
     simulated_seed: int | None = None
+    relations_path: Path | None = None
 
 
 class _Skipped(Exception):
@@ -194,8 +197,19 @@ def discover(data_dir: str | Path) -> list[SuiteEntry]:
         if names.count(name) > 1:
             rel = folder.relative_to(data_dir) if folder.is_relative_to(data_dir) else Path(folder.name)
             name = str(rel / recording_name(path)) if str(rel) != "." else recording_name(path)
-        entries.append(SuiteEntry(name, path, ref))
+        entries.append(SuiteEntry(name, path, ref, relations_path=relations_beside(path, name)))
     return entries
+
+
+def relations_beside(path: Path, name: str) -> Path | None:
+    """The benchmark relations file of a recording (Kuemmerle et al. 2009): ``NAME.relations`` beside it,
+    named as the suite's row or as the recording (``intel/intel.relations``, ``fr-clinic/fr-clinic.relations``
+    for ``fr-clinic/fr-clinic_robotlaser.clf.bz2``), else None."""
+    for stem in dict.fromkeys((Path(name).name, recording_name(path))):
+        candidate = path.parent / f"{stem}.relations"
+        if candidate.is_file():
+            return candidate
+    return None
 
 
 def simulated_entries(seeds: tuple[int, ...] = SIMULATED_SEEDS) -> list[SuiteEntry]:
@@ -407,7 +421,16 @@ def run_entry(
     with progress.stage(entry.name, total=steps) as bar:
         try:
             if entry.simulated_seed is None:
-                _evaluate(row, entry.input_path, entry.reference_path, config, seeds, slam_only, bar)
+                _evaluate(
+                    row,
+                    entry.input_path,
+                    entry.reference_path,
+                    config,
+                    seeds,
+                    slam_only,
+                    bar,
+                    entry.relations_path,
+                )
             else:
                 from datasets.simulation import simulate
 
@@ -434,8 +457,11 @@ def _evaluate(
     seeds: list[int],
     slam_only: bool,
     bar: StageBar,
+    relations_path: Path | None = None,
 ) -> None:
-    """Fill ``row`` with the SLAM metrics and the maps of one recording (raises on failure)."""
+    """Fill ``row`` with the SLAM metrics (and the benchmark relations' errors where ``relations_path``
+    is given) and the maps of one recording (raises on failure)."""
+    from datasets.relations import read_relations
     from datasets.simulation import load_ground_truth
 
     timings = row["timings_s"]
@@ -461,6 +487,11 @@ def _evaluate(
     scans = rows = None
     if ref is not None:
         scans, rows, scan_matching = match_reference_counted(rec, ref)
+    relations = rel_match = None
+    if relations_path is not None:
+        relations = read_relations(relations_path)
+        rel_match = match_relations(rec, relations, relations_path)
+        row["relations"] = str(relations_path)
     timings["read_s"] = time.perf_counter() - t0
     bar.advance()
 
@@ -473,6 +504,8 @@ def _evaluate(
     out, result = slam_and_score(rec, ref, scans, rows, reference_path, config.slam, Progress())
     if ref is not None:
         out["reference"]["scan_matching"] = scan_matching  # as evaluate slam
+    if relations is not None:
+        out["relations"] = score_relations(rec, result, relations, rel_match)
     slam = out["slam"]
     timings["slam_s"] = slam["wall_s"]
     if synthetic:
@@ -659,12 +692,13 @@ def _observed(result: dict[str, Any] | None) -> str:
 
 TABLE_LEGEND = (
     "scans: of the input (matched to the reference); ATE (m), NEES (3 if consistent): before / after loop "
-    "closure; consecutive: error between consecutive reference scans after loop closure, m / deg; closures: "
-    "accepted / rejected; x RT: real-time factor of the SLAM stage; loop search: its time and share of the "
-    "SLAM time; AUC (mean over the seeds): GPPOL / GPFOL / grid, maps on the reference poses and on ours "
-    "(test points from the reference poses), and on ours with the test points from our poses too; "
-    "observed: maps on the reference poses, GPPOL's AUC over the test points in cells the mapped beams "
-    "observed / the share of test points in cells they did not"
+    "closure; consecutive: error between consecutive reference scans after loop closure, m / deg; "
+    "relations: mean error against the benchmark's relations (NAME.relations beside the log) after loop "
+    "closure, m / deg; closures: accepted / rejected; x RT: real-time factor of the SLAM stage; loop "
+    "search: its time and share of the SLAM time; AUC (mean over the seeds): GPPOL / GPFOL / grid, maps on "
+    "the reference poses and on ours (test points from the reference poses), and on ours with the test "
+    "points from our poses too; observed: maps on the reference poses, GPPOL's AUC over the test points in "
+    "cells the mapped beams observed / the share of test points in cells they did not"
 )
 
 
@@ -682,6 +716,10 @@ def table_row(row: dict[str, Any]) -> dict[str, str]:
     cells["ATE m"] = _pair(ate["before"], ate["after"], ".3f") if ate else "-"
     cells["consecutive"] = "-" if rel is None else _pair(rel["trans_mean_m"], rel["rot_mean_deg"], ".3f")
     cells["NEES"] = _pair(nees["before"], nees["after"], ".3g") if nees else "-"
+    bench = out.get("relations")
+    cells["relations m / deg"] = (
+        "-" if not bench else _pair(bench["trans_mean_m"], bench["rot_mean_deg"], ".4f")
+    )
     cells["closures"] = "-" if s is None else f"{s['loop_closures_accepted']} / {s['loop_closures_rejected']}"
     cells["SLAM s"] = "-" if s is None else f"{s['wall_s']:.1f}"
     rtf = None if s is None else s.get("realtime_factor")

@@ -17,7 +17,13 @@ from mapping.config import MappingConfig
 from mapping.evaluation import holdout_block_scans, holdout_split
 from pipeline.errors import PipelineError
 from pipeline.evaluate_map import evaluate_holdout, reference_base_poses
-from pipeline.evaluate_suite import discover, evaluate_slam_poses, slam_poses_on_reference
+from pipeline.evaluate_suite import (
+    discover,
+    evaluate_slam_poses,
+    relations_beside,
+    slam_poses_on_reference,
+    table_row,
+)
 from pipeline.progress import Progress
 from slam import geometry as se2
 from tests.conftest import REPO, data_file
@@ -39,6 +45,7 @@ def data_folder(tmp_path_factory):
     links = {
         "intel/intel.clf.bz2": "intel/intel.clf.bz2",
         "intel/intel.gfs.log": "intel/intel.gfs.log",
+        "intel/intel.relations": "intel/intel.relations",
         "radish/seattle-corrected.log.gz": "radish-corrected/seattle-corrected.log.gz",
         "radish/orebro-corrected.log.gz": "radish-corrected/orebro-corrected.log.gz",
         "radish/belgioioso-corrected.log.gz": "radish-corrected/belgioioso-corrected.log.gz",
@@ -61,6 +68,8 @@ def test_discovery_pairs_twins_names_folders_and_stops_two_levels_down(data_fold
     assert set(entries) == {"intel", "seattle", "orebro", "belgioioso", "jackal", "broken"}
     intel = entries["intel"]
     assert intel.input_path.name == "intel.clf.bz2" and intel.reference_path.name == "intel.gfs.log"
+    assert intel.relations_path.name == "intel.relations"  # the benchmark's relations beside the log
+    assert entries["seattle"].relations_path is None
     # a corrected log without a raw twin is its own reference (decided when read)
     assert entries["seattle"].reference_path is None
     assert entries["seattle"].input_path.name == "seattle-corrected.log.gz"
@@ -110,6 +119,23 @@ def test_suite_json_rows_error_skip_and_synthetic_stamps(data_folder) -> None:
 
     jackal = rows["jackal"]
     assert jackal["error"] is None and jackal["skipped"].startswith("no laser scans")
+
+
+def test_relations_found_by_row_or_recording_name_and_shown_in_the_table(tmp_path) -> None:
+    clinic = tmp_path / "fr-clinic"
+    clinic.mkdir()
+    log = clinic / "fr-clinic_robotlaser.clf"
+    log.write_text("")
+    assert relations_beside(log, "fr-clinic") is None
+    (clinic / "fr-clinic.relations").write_text("")
+    assert relations_beside(log, "fr-clinic") == clinic / "fr-clinic.relations"
+    (clinic / "fr-clinic.relations").unlink()
+    (clinic / "fr-clinic_robotlaser.relations").write_text("")
+    assert relations_beside(log, "fr-clinic") == clinic / "fr-clinic_robotlaser.relations"
+    bench = {"count": 10, "trans_mean_m": 0.01994, "rot_mean_deg": 0.4019}
+    row = {"name": "intel", "slam": {"relations": bench, "slam": None}, "maps": None}
+    assert table_row(row)["relations m / deg"] == "0.0199 / 0.4019"
+    assert table_row({"name": "x", "slam": None, "maps": None})["relations m / deg"] == "-"
 
 
 def test_suite_table_and_unknown_name(data_folder) -> None:
