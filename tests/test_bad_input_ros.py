@@ -318,6 +318,25 @@ def test_ros1_chunk_decompressing_beyond_its_declared_size(tmp_path: Path, compr
     _expect_error(path, "corrupt ROS1 bag", "decompresses to more than the 16 bytes")
 
 
+@pytest.mark.parametrize(
+    ("value", "shown"),
+    [(b"\nz\x00", r"'\nz\x00'"), (b"\xff\xfe\x1b", r"b'\xff\xfe\x1b'"), (b"zst", "'zst'")],
+    ids=["newline-nul", "not-utf8", "unknown"],
+)
+def test_ros1_chunk_compression_field_is_quoted_escaped(tmp_path: Path, value: bytes, shown: str) -> None:
+    """A chunk's ``compression`` field holding control bytes: the message quoted them raw (two lines, a NUL);
+    it now shows them escaped, from both the chunk scanner and rosbags' strict reader."""
+    path = write_ros1(tmp_path / "c.bag", standard_messages("ros1"), "bz2")
+    data = bytearray(path.read_bytes())
+    chunk = next(r for r in ros1_records(bytes(data)) if _op(r) == 5)
+    at, old = chunk["fields"]["compression"]
+    assert old == b"bz2" and len(value) == len(old)
+    data[at : at + len(value)] = value
+    path.write_bytes(data)
+    message = _expect_error(path, "corrupt ROS1 bag", f"unsupported compression {shown}")
+    assert message.isprintable(), message
+
+
 # -- MCAP and ROS 2 ----------------------------------------------------------------------------------------
 
 
