@@ -26,6 +26,8 @@ from typing import Any
 import apsw
 from rosbags import rosbag1, rosbag2
 from rosbags.interfaces import MessageDefinitionFormat
+from rosbags.rosbag2 import reader as rosbag2_reader
+from rosbags.rosbag2 import storage_mcap
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, TypesysError, get_types_from_idl, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
@@ -33,6 +35,35 @@ from rosbags.typesys.store import Typestore
 from datasets.errors import DatasetError, first_line, shown, shown_name, shown_names
 from datasets.ros.chunkscan import BagScanError, ChunkScanBag, first_overrun
 from datasets.ros.typestores import BagKind, standard_typestore
+
+
+def _zstd_errors() -> tuple[type[BaseException], ...]:
+    """The error classes of the zstd module rosbags decompresses with (``backports.zstd`` before Python 3.14,
+    ``compression.zstd`` since; ``zstandard`` in older rosbags), as rosbags' own modules import it."""
+    found: list[type[BaseException]] = []
+    for module in (rosbag2_reader, storage_mcap):
+        cls = getattr(getattr(module, "zstd", None), "ZstdError", None)
+        if isinstance(cls, type) and issubclass(cls, BaseException) and cls not in found:
+            found.append(cls)
+    return tuple(found)
+
+
+def _zstd_failure(path: Path, exc: BaseException, declared: str | None) -> DatasetError:
+    """The error for zstd data of the ROS 2 bag at ``path`` that does not decompress; ``declared``: the
+    compression mode its metadata.yaml declares (``file`` / ``message``), None when unknown or none."""
+    hint = ""
+    if declared is not None or path.is_dir():
+        mode = f"compression_mode {shown_name(declared)}" if declared else "compression"
+        hint = f"; does metadata.yaml declare a zstd {mode} that the files do not have?"
+    return DatasetError(
+        f"{path}: corrupt ROS2 bag: zstd-compressed data does not decompress ({first_line(exc)}){hint}"
+    )
+
+
+#: What rosbags raises for zstd data that does not decompress: a ROS 2 bag whose metadata.yaml declares
+#: ``compression_format: zstd`` (by FILE or by MESSAGE) while its files are not compressed, a damaged
+#: ``.zstd`` file, a damaged zstd chunk of an MCAP file.
+ZSTD_ERRORS: tuple[type[BaseException], ...] = _zstd_errors()
 
 # What a damaged or cut bag can make rosbags (or the decompressors and SQLite under it) raise. Only calls into
 # those libraries are guarded with it: a size field of 2^40 or 2^63 makes them allocate (MemoryError) or
@@ -56,6 +87,7 @@ BAG_IO_ERRORS: tuple[type[BaseException], ...] = (
     AttributeError,
     apsw.Error,
     sqlite3.Error,
+    *ZSTD_ERRORS,
 )
 
 
@@ -131,6 +163,9 @@ class Bag:
                 yield conn, t, raw
         except DatasetError:
             raise
+        except ZSTD_ERRORS as exc:
+            metadata = getattr(self._reader, "metadata", None)
+            raise _zstd_failure(self.path, exc, getattr(metadata, "compression_mode", None)) from None
         except (*BAG_IO_ERRORS, BagScanError) as exc:
             raise DatasetError(
                 f"{self.path}: corrupt bag, reading messages failed ({first_line(exc)})"
@@ -381,6 +416,8 @@ def open_ros2(path: Path) -> Bag:
             (c.topic, c.msgtype, c.digest or "", c.msgdef.format, c.msgdef.data, c, c.id, c.msgcount)
             for c in reader.connections
         ]
+    except ZSTD_ERRORS as exc:
+        raise _zstd_failure(path, exc, None) from None
     except (*BAG_IO_ERRORS, FileNotFoundError) as exc:
         raise DatasetError(f"{path}: corrupt or unreadable ROS2 bag ({first_line(exc)})") from None
     return _open_bag(path, "ros2", reader, raw)
