@@ -325,6 +325,44 @@ def test_kitti_scan_ranges_slice(tmp_path: Path) -> None:
     assert len(first) == 1 and first[0].dtype == np.float32
 
 
+# ---------------------------------------------------------------------------- quoted tokens escaped
+
+ESC_TOKEN = "1\x1b[2J\x7f"  # a number followed by a terminal escape sequence and DEL
+ESC_SHOWN = r"'1\x1b[2J\x7f'"
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "read"),
+    [
+        ("range.clf", flaser(ranges=f"1 {ESC_TOKEN} 3"), read_carmen),
+        ("count.clf", f"FLASER {ESC_TOKEN} 1 2 3 1 2 0.5 1 2 0.5 1.0 host 1.0", read_carmen),
+        ("stamp.clf", flaser(ipc=ESC_TOKEN), read_carmen),
+        ("value.relations", f"1.0 2.0 {ESC_TOKEN} 0 0 0 0 0", read_relations),
+        ("stamp.relations", f"1.0 {ESC_TOKEN} 0 0 0 0 0 0", read_relations),
+        ("stamp.tum", f"{ESC_TOKEN} 0 0 0 0 0 0 1", read_tum),
+        ("value.g2o", f"VERTEX_SE2 0 {ESC_TOKEN} 0 0", read_g2o),
+        ("id.g2o", f"VERTEX_SE2 {ESC_TOKEN} 0 0 0", read_g2o),
+        ("tag.g2o", "VERTEX\x1b[2J\x7f 0 0 0 0", read_g2o),
+    ],
+    ids=lambda v: v if isinstance(v, str) and "." in v and "\x1b" not in v else None,
+)
+def test_quoted_tokens_are_escaped(tmp_path: Path, name: str, text: str, read) -> None:
+    """A token holding control characters is quoted escaped (it reached the terminal raw: ESC, DEL)."""
+    path = _write(tmp_path / name, text + "\n")
+    with pytest.raises(GpomError) as err:
+        read(path)
+    message = str(err.value)
+    assert message.isprintable(), message
+    assert ESC_SHOWN in message or r"VERTEX\x1b[2J\x7f" in message, message
+
+
+def test_kitti_time_token_is_escaped(tmp_path: Path) -> None:
+    folder = _kitti(tmp_path, times_txt=f"{ESC_TOKEN}\n")
+    with pytest.raises(KittiError) as err:
+        read_kitti(folder)
+    assert str(err.value).isprintable() and ESC_SHOWN in str(err.value), str(err.value)
+
+
 # ------------------------------------------------------------------------------------------- config
 
 
