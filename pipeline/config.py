@@ -93,7 +93,8 @@ class ConfigLoader(yaml.SafeLoader):
     A plain ``2001-02-28`` stays the string it looks like (a topic may be named so; YAML 1.1 would make it a
     ``date``, and ``2001-02-29`` a ValueError); an explicit ``!!timestamp`` still builds a date. A scalar that
     a constructor refuses with a ValueError or OverflowError (``!!float abc``, ``!!int 1.5``, an integer of
-    more than 4300 digits, ``!!timestamp 2001-13-45``) becomes a ConstructorError with its line and column.
+    more than 4300 digits, ``!!timestamp 2001-13-45``, ``!!timestamp x``) becomes a ConstructorError with its
+    line and column.
     """
 
     yaml_implicit_resolvers: ClassVar[dict[str, list[tuple[str, re.Pattern[str]]]]] = {
@@ -102,10 +103,14 @@ class ConfigLoader(yaml.SafeLoader):
     }
 
     def construct_object(self, node: yaml.Node, deep: bool = False) -> Any:
-        """The value of ``node``; a constructor's ValueError / OverflowError names the node's position."""
+        """The value of ``node``; any error of a constructor is a ConstructorError naming the node's position
+        (ValueError and OverflowError of bad values, AttributeError of PyYAML's timestamp constructor on
+        ``!!timestamp x``)."""
         try:
             return super().construct_object(node, deep=deep)
-        except (ValueError, ArithmeticError) as exc:
+        except (yaml.YAMLError, RecursionError):
+            raise
+        except Exception as exc:
             value = node.value if isinstance(node, yaml.ScalarNode) else node.tag
             problem = f"cannot read {node.tag.rsplit(':', 1)[-1]} {shown(value, 40)} ({_one_line(exc, 120)})"
             raise yaml.constructor.ConstructorError(None, None, problem, node.start_mark) from None
@@ -183,7 +188,7 @@ def load_config(path: str | Path | None = None, overrides: dict[str, dict[str, A
         raise ConfigError(f"{p}: not valid YAML ({_yaml_problem(exc)})") from None
     except RecursionError:
         raise ConfigError(f"{p}: not a usable configuration (YAML nested too deeply)") from None
-    except (ValueError, ArithmeticError, TypeError) as exc:  # what no constructor was expected to raise
+    except (ValueError, ArithmeticError, TypeError, AttributeError) as exc:  # (outside any constructor)
         raise ConfigError(f"{p}: not a usable configuration ({_one_line(exc, 120)})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{p}: a configuration must be a mapping of stages, got {type(data).__name__}")
