@@ -445,7 +445,10 @@ def test_ros2_declared_zstd_but_stored_plain(tmp_path: Path, storage: str, mode:
     """metadata.yaml says zstd, the storage file is not: was backports.zstd.ZstdError from rosbags
     (``reader.open()`` for FILE, the message loop for MESSAGE)."""
     folder = declare_compression(write_ros2(tmp_path / "z", standard_messages("ros2"), storage), mode)
-    _expect_error(folder, "zstd", "does not decompress")
+    hint = (
+        "declare a zstd compression_mode message that" if mode == "MESSAGE" else "declare a zstd compression"
+    )
+    _expect_error(folder, "corrupt ROS2 bag: zstd-compressed data does not decompress", hint)
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])

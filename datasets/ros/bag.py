@@ -164,8 +164,11 @@ class Bag:
         except DatasetError:
             raise
         except ZSTD_ERRORS as exc:
-            metadata = getattr(self._reader, "metadata", None)
-            raise _zstd_failure(self.path, exc, getattr(metadata, "compression_mode", None)) from None
+            try:  # rosbags' Reader says what metadata.yaml declares ('message'); other readers have no such
+                declared = getattr(self._reader, "compression_mode", None)
+            except BAG_IO_ERRORS:
+                declared = None
+            raise _zstd_failure(self.path, exc, declared if isinstance(declared, str) else None) from None
         except (*BAG_IO_ERRORS, BagScanError) as exc:
             raise DatasetError(
                 f"{self.path}: corrupt bag, reading messages failed ({first_line(exc)})"
