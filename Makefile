@@ -60,7 +60,7 @@ demo: env
 test: env
 	$(PY) -m pytest -q
 
-# The long profile of the fuzzing harness (tests/fuzz, 10-15 minutes): random cases, thousands per property;
+# The long profile of the fuzzing harness (tests/fuzz, 15-25 minutes): random cases, thousands per property;
 # `make test` runs its short deterministic profile.
 fuzz: env
 	GPOM_FUZZ_PROFILE=long $(PY) -m pytest -q tests/fuzz --hypothesis-show-statistics

@@ -77,7 +77,7 @@ from numpy.typing import NDArray
 
 from datasets import se2
 from datasets.config import InputConfig
-from datasets.errors import DatasetError
+from datasets.errors import DatasetError, shown
 from datasets.keyframe_match import ScanMatch, match_keyframe_scans, match_scans
 from datasets.no_return import repeated_maximum_m
 from datasets.numtext import NumberParseError, parse_floats, parse_stamps_ns
@@ -374,7 +374,7 @@ def _count(token: bytes, what: str) -> int:
     try:
         value = int(text)
     except ValueError:
-        raise ValueError(f"{what} '{text}' is not an integer") from None
+        raise ValueError(f"{what} {shown(text)} is not an integer") from None
     if value < 0:
         raise ValueError(f"negative {what} {value}")
     return value
@@ -390,7 +390,7 @@ def _parse_floats(
         j = int(np.searchsorted(np.cumsum(per_row), exc.index, side="right"))
         field = exc.index - int(np.sum(per_row[:j])) + 2  # values start at the record's second field
         raise CarmenError(
-            f"{path}: line {rows[j] + 1}: {kind} field {field} '{exc.token}' is not a number"
+            f"{path}: line {rows[j] + 1}: {kind} field {field} {shown(exc.token)} is not a number"
         ) from None
 
 
@@ -417,7 +417,7 @@ def _reject_first(
     j = int(np.searchsorted(offsets, where[0], side="right") - 1)
     field = int(where[0] - offsets[j]) + 2  # values start at the second field
     token = lines[rows[j]].split()[field - 1].decode("ascii", "replace")
-    raise CarmenError(f"{path}: line {rows[j] + 1}: {kind} field {field} {why} ('{token}')")
+    raise CarmenError(f"{path}: line {rows[j] + 1}: {kind} field {field} {why} ({shown(token)})")
 
 
 def _value_mask(size: int, index: NDArray) -> NDArray[np.bool_]:

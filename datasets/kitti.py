@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from datasets.cloud import cloud_to_scan
 from datasets.config import InputConfig
-from datasets.errors import DatasetError
+from datasets.errors import DatasetError, shown, shown_names
 from datasets.stamps import StampRangeError, decimal_to_ns
 from datasets.types import CloudSequence, PointCloud, Recording, ScanSequence, Trajectory, beam_angles_rad
 from datasets.validate import MAX_COORDINATE_M, MAX_STAMP_NS
@@ -223,7 +223,7 @@ def _frame_index(frame: Path, position: int) -> int:
     if not (stem.isascii() and stem.isdigit()):
         return position
     if len(stem.lstrip("0")) > 15:
-        raise KittiError(f"{frame}: frame number {stem} is out of range")
+        raise KittiError(f"{frame}: frame number {shown(stem, bare=True)} is out of range")
     return int(stem)
 
 
@@ -234,7 +234,7 @@ def _side_file(folder: Path, prefix: str) -> Path | None:
         return exact
     found = sorted(p for p in folder.glob(f"{prefix}*.txt") if p.is_file())
     if len(found) > 1:
-        names = ", ".join(p.name for p in found)
+        names = shown_names(p.name for p in found)
         raise KittiError(f"{folder}: several {prefix} files ({names}); keep one or name it {prefix}.txt")
     return found[0] if found else None
 
@@ -262,10 +262,10 @@ def _read_times(path: Path) -> NDArray[np.int64]:
         except StampRangeError:
             stamp_ns = MAX_STAMP_NS + 1
         except (ValueError, OverflowError):
-            raise KittiError(f"{path}: line {number}: '{fields[0]}' is not a time in seconds") from None
+            raise KittiError(f"{path}: line {number}: {shown(fields[0])} is not a time in seconds") from None
         if abs(stamp_ns) > MAX_STAMP_NS:
             raise KittiError(
-                f"{path}: line {number}: time '{fields[0]}' s is out of range (after the year 2200 or "
+                f"{path}: line {number}: time {shown(fields[0])} s is out of range (after the year 2200 or "
                 "as far before 1970)"
             )
         out.append(stamp_ns)
@@ -279,7 +279,7 @@ def _floats(path: Path, number: int, fields: list[str], count: int, what: str) -
         values = np.array([float(f) for f in fields])
     except ValueError:
         bad = next(f for f in fields if not _is_float(f))
-        raise KittiError(f"{path}: line {number}: '{bad}' is not a number") from None
+        raise KittiError(f"{path}: line {number}: {shown(bad)} is not a number") from None
     if not np.all(np.isfinite(values)):
         raise KittiError(f"{path}: line {number}: non-finite value in {what}")
     return values

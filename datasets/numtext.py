@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets.errors import shown
 from datasets.stamps import StampRangeError, decimal_to_ns
 
 _CHUNK_BYTES = 1 << 18
@@ -119,7 +120,7 @@ def parse_floats(blob: bytes) -> NDArray[np.float64]:
                 values[i] = float(tok)
             except ValueError:
                 text = tok.decode("ascii", "replace")
-                raise NumberParseError(offset + i, text, f"'{text}' is not a number") from None
+                raise NumberParseError(offset + i, text, f"{shown(text)} is not a number") from None
         parts.append(values)
         offset += values.shape[0]
     return np.concatenate(parts)
@@ -149,7 +150,7 @@ def parse_stamps_ns(blob: bytes) -> NDArray[np.int64]:
                 raise NumberParseError(offset + i, text, str(exc)) from None
             except (ValueError, OverflowError):
                 raise NumberParseError(
-                    offset + i, text, f"'{text}' is not a finite decimal number of seconds"
+                    offset + i, text, f"{shown(text)} is not a finite decimal number of seconds"
                 ) from None
         parts.append(stamps)
         offset += stamps.shape[0]

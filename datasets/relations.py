@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from datasets.errors import DatasetError
+from datasets.errors import DatasetError, shown
 from datasets.files import write_text_atomic
 from datasets.stamps import NS_PER_S, ns_to_decimal, stamp_field_ns
 
@@ -98,9 +98,9 @@ def read_relations(path: str | Path) -> Relations:
             try:
                 value = float(tok)
             except ValueError:
-                raise RelationsError(f"{path}: line {number}: '{tok}' is not a number") from None
+                raise RelationsError(f"{path}: line {number}: {shown(tok)} is not a number") from None
             if not np.isfinite(value):
-                raise RelationsError(f"{path}: line {number}: non-finite value '{tok}'")
+                raise RelationsError(f"{path}: line {number}: non-finite value {shown(tok)}")
             row.append(value)
         s1.append(t1)
         s2.append(t2)
@@ -116,7 +116,7 @@ def _stamp(path: Path, number: int, token: str) -> int:
     try:
         return stamp_field_ns(token)
     except ValueError as exc:
-        raise RelationsError(f"{path}: line {number}: timestamp '{token}' {exc}") from None
+        raise RelationsError(f"{path}: line {number}: timestamp {shown(token)} {exc}") from None
 
 
 def _stamp_text(stamp_ns: int) -> str:

@@ -14,6 +14,8 @@ from decimal import ROUND_HALF_EVEN, Decimal, localcontext
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets.errors import shown
+
 NS_PER_S = 1_000_000_000
 
 
@@ -36,14 +38,14 @@ def decimal_to_ns(text: bytes | str) -> int:
     try:
         value = Decimal(s)
         if not value.is_finite():
-            raise ValueError(f"'{_shortened(s)}' is not a finite number")
+            raise ValueError(f"{shown(s, 40)} is not a finite number")
         if value and value.adjusted() > _MAX_WHOLE_DIGITS:  # > 1e11 s: int64 ns end near 9.2e9 s
             raise StampRangeError(s)
         with localcontext() as ctx:
             ctx.prec = 40
             ns = int(value.scaleb(9).quantize(Decimal(1), rounding=ROUND_HALF_EVEN))
     except ArithmeticError:  # decimal.InvalidOperation, decimal.Overflow: not a usable decimal
-        raise ValueError(f"'{_shortened(s)}' is not a decimal number") from None
+        raise ValueError(f"{shown(s, 40)} is not a decimal number") from None
     return _checked(s, ns)
 
 
@@ -57,7 +59,7 @@ class StampRangeError(ValueError):
 
     def __init__(self, text: str) -> None:
         super().__init__(
-            f"'{_shortened(text)}' is out of range for a timestamp (int64 nanoseconds, +-292 years)"
+            f"{shown(text, 40)} is out of range for a timestamp (int64 nanoseconds, +-292 years)"
         )
 
 
@@ -71,11 +73,6 @@ def stamp_field_ns(text: str) -> int:
         raise ValueError("is out of range (int64 nanoseconds, +-292 years)") from None
     except (ValueError, OverflowError):
         raise ValueError("is not a decimal number") from None
-
-
-def _shortened(text: str, limit: int = 40) -> str:
-    """``text`` cut to about ``limit`` characters for a message."""
-    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 def _checked(text: str, ns: int) -> int:
@@ -102,8 +99,7 @@ def decimals_to_ns(texts: Sequence[bytes | str]) -> NDArray[np.int64]:
         except ValueError as exc:
             raise StampParseError(i, str(exc)) from None
         except OverflowError:
-            shown = t.decode("ascii", "replace") if isinstance(t, bytes) else t
-            raise StampParseError(i, f"'{shown}' is out of range for a timestamp") from None
+            raise StampParseError(i, f"{shown(t, 40)} is out of range for a timestamp") from None
     return out
 
 

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-import reprlib
+import re
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from datasets.config import InputConfig, MovedKeyError
-from datasets.errors import ConfigError
+from datasets.errors import ConfigError, shown
 from mapping.config import MappingConfig
 from mapping.exports import UNKNOWN_VARIANCE_FRACTION
 from pipeline.scale_config import ScaleConfig
@@ -75,19 +75,45 @@ class Config(BaseModel):
     scale: ScaleConfig = Field(default_factory=ScaleConfig)
 
 
-def _one_line(text: str, limit: int = 200) -> str:
-    """``text`` on one line, shortened to about ``limit`` characters."""
-    flat = " ".join(str(text).split())
-    return flat if len(flat) <= limit else flat[: limit - 3] + "..."
-
-
-_SHORT_REPR = reprlib.Repr()
-_SHORT_REPR.maxlevel, _SHORT_REPR.maxstring, _SHORT_REPR.maxother = 3, 80, 80
+def _one_line(text: object, limit: int = 200) -> str:
+    """A message (a library's, or a key path) on one printable line of at most ``limit`` characters: runs of
+    whitespace made one space, other control characters escaped (:func:`~datasets.errors.shown`)."""
+    return shown(" ".join(str(text).split()), limit, bare=True)
 
 
 def _shown(value: object) -> str:
-    """A short one-line repr of a configuration value (bounded even for YAML alias bombs)."""
-    return _one_line(_SHORT_REPR.repr(value))
+    """A configuration value in a message: a bounded one-line repr, even of a YAML alias bomb, a string of
+    control characters or an integer of thousands of digits (:func:`~datasets.errors.shown`)."""
+    return shown(value, 80)
+
+
+class ConfigLoader(yaml.SafeLoader):
+    """PyYAML's safe loader without YAML 1.1's implicit timestamps, and with located construction errors.
+
+    A plain ``2001-02-28`` stays the string it looks like (a topic may be named so; YAML 1.1 would make it a
+    ``date``, and ``2001-02-29`` a ValueError); an explicit ``!!timestamp`` still builds a date. A scalar that
+    a constructor refuses with a ValueError or OverflowError (``!!float abc``, ``!!int 1.5``, an integer of
+    more than 4300 digits, ``!!timestamp 2001-13-45``, ``!!timestamp x``) becomes a ConstructorError with its
+    line and column.
+    """
+
+    yaml_implicit_resolvers: ClassVar[dict[str, list[tuple[str, re.Pattern[str]]]]] = {
+        first: [(tag, regexp) for tag, regexp in resolvers if tag != "tag:yaml.org,2002:timestamp"]
+        for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+    }
+
+    def construct_object(self, node: yaml.Node, deep: bool = False) -> Any:
+        """The value of ``node``; any error of a constructor is a ConstructorError naming the node's position
+        (ValueError and OverflowError of bad values, AttributeError of PyYAML's timestamp constructor on
+        ``!!timestamp x``)."""
+        try:
+            return super().construct_object(node, deep=deep)
+        except (yaml.YAMLError, RecursionError):
+            raise
+        except Exception as exc:
+            value = node.value if isinstance(node, yaml.ScalarNode) else node.tag
+            problem = f"cannot read {node.tag.rsplit(':', 1)[-1]} {shown(value, 40)} ({_one_line(exc, 120)})"
+            raise yaml.constructor.ConstructorError(None, None, problem, node.start_mark) from None
 
 
 def _yaml_problem(exc: yaml.YAMLError) -> str:
@@ -95,28 +121,32 @@ def _yaml_problem(exc: yaml.YAMLError) -> str:
     mark, problem = getattr(exc, "problem_mark", None), getattr(exc, "problem", None)
     if mark is not None and problem:
         return _one_line(f"line {mark.line + 1}, column {mark.column + 1}: {problem}")
-    return _one_line(str(exc)) or type(exc).__name__
+    return _one_line(exc) or type(exc).__name__
+
+
+def _key_path(loc: tuple[int | str, ...]) -> str:
+    """``mapping.resolution_m`` from a pydantic error location (whose keys come from the file)."""
+    return ".".join(shown(p, 60, bare=True) for p in loc) or "(root)"
 
 
 def _format_validation_error(source: str, error: ValidationError) -> str:
     first = error.errors()[0]
-    where = ".".join(str(p) for p in first["loc"]) or "(root)"
+    where = _key_path(first["loc"])
     if first["type"] == "extra_forbidden":
-        return f"{source}: unknown configuration key '{_one_line(where)}'"
+        return f"{source}: unknown configuration key '{where}'"
     moved = (first.get("ctx") or {}).get("error")
     if isinstance(moved, MovedKeyError):
         return f"{source}: configuration key '{where}.{moved.old}' is now '{where}.{moved.new}'"
     value = first.get("input")
-    shown, msg = _shown(value), _one_line(first["msg"])
-    return f"{source}: invalid value {shown} for '{_one_line(where)}': {msg}"
+    return f"{source}: invalid value {_shown(value)} for '{where}': {_one_line(first['msg'])}"
 
 
 def _overridden_key(error: ValidationError, overrides: dict[str, dict[str, Any]]) -> str | None:
     """The dotted key (``"mapping.resolution_m"``) of an override that the first error is about, else None."""
     loc = error.errors()[0]["loc"]
-    if len(loc) < 2:
-        return None
-    stage, key = str(loc[0]), str(loc[1])
+    if len(loc) < 2 or not isinstance(loc[0], str) or not isinstance(loc[1], str):
+        return None  # (a key of the file that is no string, e.g. an integer of thousands of digits)
+    stage, key = loc[0], loc[1]
     if (overrides.get(stage) or {}).get(key) is None:
         return None
     return f"{stage}.{key}"
@@ -135,7 +165,9 @@ def load_config(path: str | Path | None = None, overrides: dict[str, dict[str, A
 
     ``overrides`` is ``{"stage": {"key": value}}``, e.g. from command-line options (None values are not
     applied); a bad override value is blamed on its command-line option (:data:`CLI_OPTIONS`), a bad value
-    of the file on the file. Any unreadable, non-UTF-8 or malformed file is a ConfigError.
+    of the file on the file. Any unreadable, non-UTF-8 or malformed file, and any value YAML cannot build
+    (``!!float abc``, a 5000-digit integer), is a ConfigError of one printable line. The file is read with
+    :class:`ConfigLoader`: a plain date-like value (``scan_topic: 2001-02-28``) is the string it looks like.
     """
     p = Path(path) if path is not None else DEFAULT_CONFIG_PATH
     try:
@@ -151,11 +183,13 @@ def load_config(path: str | Path | None = None, overrides: dict[str, dict[str, A
     except OSError as exc:
         raise ConfigError(f"{p}: cannot read configuration: {exc.strerror or exc}") from None
     try:
-        data = yaml.safe_load(text) or {}
+        data = yaml.load(text, Loader=ConfigLoader) or {}  # a SafeLoader
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: not valid YAML ({_yaml_problem(exc)})") from None
     except RecursionError:
         raise ConfigError(f"{p}: not a usable configuration (YAML nested too deeply)") from None
+    except (ValueError, ArithmeticError, TypeError, AttributeError) as exc:  # (outside any constructor)
+        raise ConfigError(f"{p}: not a usable configuration ({_one_line(exc, 120)})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{p}: a configuration must be a mapping of stages, got {type(data).__name__}")
     for stage, values in (overrides or {}).items():

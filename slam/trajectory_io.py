@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from datasets.errors import DatasetError
+from datasets.errors import DatasetError, first_line, shown
 from datasets.files import atomic_output, write_text_atomic
 from datasets.stamps import stamp_field_ns
 from slam.graph import Edge
@@ -46,7 +46,7 @@ def _read_lines(path: Path) -> list[str]:
     except IsADirectoryError:
         raise TrajectoryFormatError(f"{path}: is a directory") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise TrajectoryFormatError(f"{path}: cannot read: {exc}") from None
+        raise TrajectoryFormatError(f"{path}: cannot read: {first_line(exc)}") from None
 
 
 def _stamp_text(stamp_ns: int) -> str:
@@ -60,7 +60,7 @@ def _parse_stamp(path: Path, number: int, text: str) -> int:
     try:
         return stamp_field_ns(text)
     except ValueError as exc:
-        raise TrajectoryFormatError(f"{path}: line {number}: stamp '{text}' {exc}") from None
+        raise TrajectoryFormatError(f"{path}: line {number}: stamp {shown(text)} {exc}") from None
 
 
 def _finite_floats(path: Path, number: int, fields: list[str], what: str) -> list[float]:
@@ -70,9 +70,11 @@ def _finite_floats(path: Path, number: int, fields: list[str], what: str) -> lis
         try:
             value = float(text)
         except ValueError:
-            raise TrajectoryFormatError(f"{path}: line {number}: {what} '{text}' is not a number") from None
+            raise TrajectoryFormatError(
+                f"{path}: line {number}: {what} {shown(text)} is not a number"
+            ) from None
         if not math.isfinite(value):
-            raise TrajectoryFormatError(f"{path}: line {number}: {what} '{text}' is not finite")
+            raise TrajectoryFormatError(f"{path}: line {number}: {what} {shown(text)} is not finite")
         out.append(value)
     return out
 
@@ -80,10 +82,10 @@ def _finite_floats(path: Path, number: int, fields: list[str], what: str) -> lis
 def _vertex_id(path: Path, number: int, text: str) -> int:
     """A g2o vertex id (an int64); TrajectoryFormatError naming the line otherwise."""
     if not _INT_RE.fullmatch(text):
-        raise TrajectoryFormatError(f"{path}: line {number}: vertex id '{text}' is not an integer")
+        raise TrajectoryFormatError(f"{path}: line {number}: vertex id {shown(text)} is not an integer")
     value = int(text)
     if not -(2**63) <= value < 2**63:
-        raise TrajectoryFormatError(f"{path}: line {number}: vertex id '{text}' is out of range (int64)")
+        raise TrajectoryFormatError(f"{path}: line {number}: vertex id {shown(text)} is out of range (int64)")
     return value
 
 
@@ -126,7 +128,9 @@ def read_tum(path: str | Path) -> tuple[NDArray[np.int64], FloatArray]:
         try:
             x, y, _z, qx, qy, qz, qw = (float(v) for v in fields[1:])
         except ValueError:
-            raise TrajectoryFormatError(f"{path}: line {number}: not a number in {text!r}") from None
+            raise TrajectoryFormatError(
+                f"{path}: line {number}: not a number in {shown(text, 100)}"
+            ) from None
         if not all(np.isfinite([x, y, qx, qy, qz, qw])):
             raise TrajectoryFormatError(f"{path}: line {number}: NaN or infinite value")
         with np.errstate(all="ignore"):  # a huge quaternion overflows to a NaN yaw, rejected below
@@ -202,7 +206,7 @@ def read_g2o(path: str | Path) -> G2oGraph:
         elif tag == "FIX":
             fixed.extend((_vertex_id(path, number, v), number) for v in fields[1:])
         else:
-            raise TrajectoryFormatError(f"{path}: line {number}: unsupported g2o record {tag!r}")
+            raise TrajectoryFormatError(f"{path}: line {number}: unsupported g2o record {shown(tag)}")
     index = {v: k for k, v in enumerate(ids)}
     if len(index) != len(ids):
         raise TrajectoryFormatError(f"{path}: duplicate vertex ids")
@@ -265,9 +269,9 @@ def load_covariances(path: str | Path) -> dict[str, NDArray]:
     except FileNotFoundError:
         raise TrajectoryFormatError(f"{path}: no such file or directory") from None
     except KeyError as exc:
-        raise TrajectoryFormatError(f"{path}: missing array {exc.args[0]!r}") from None
+        raise TrajectoryFormatError(f"{path}: missing array {shown(exc.args[0])}") from None
     except (OSError, ValueError) as exc:
-        raise TrajectoryFormatError(f"{path}: not a covariance archive ({exc})") from None
+        raise TrajectoryFormatError(f"{path}: not a covariance archive ({first_line(exc)})") from None
     k = out["stamps_ns"].shape[0]
     for name in ("before", "after"):
         if out[name].shape != (k, 3, 3):

@@ -7,6 +7,7 @@ and checks the error. The bag builders here are shared with the fuzzing harness
 
 from __future__ import annotations
 
+import re
 import sqlite3
 import struct
 import subprocess
@@ -18,7 +19,7 @@ from typing import Any
 import numpy as np
 import pytest
 from rosbags import rosbag1, rosbag2
-from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 
 from datasets import open_dataset
 from datasets.errors import DatasetError
@@ -164,11 +165,17 @@ def write_ros1(path: Path, messages: list[Message], compression: str | None = No
     return path
 
 
-def write_ros2(folder: Path, messages: list[Message], storage: str = "mcap") -> Path:
-    """A ROS2 bag folder at ``folder`` (``storage``: ``"mcap"`` or ``"sqlite3"``)."""
+def write_ros2(
+    folder: Path, messages: list[Message], storage: str = "mcap", compression: str | None = None
+) -> Path:
+    """A ROS2 bag folder at ``folder`` (``storage``: ``"mcap"`` or ``"sqlite3"``; ``compression``: None or
+    rosbags' zstd compression mode ``"file"``, ``"message"`` or, for MCAP, ``"storage"`` (zstd chunks))."""
     st = standard_typestore("ros2")
     plugin = StoragePlugin.SQLITE3 if storage == "sqlite3" else StoragePlugin.MCAP
     writer = rosbag2.Writer(folder, version=rosbag2.Writer.VERSION_LATEST, storage_plugin=plugin)
+    if compression:
+        mode = getattr(CompressionMode, compression.upper())
+        writer.set_compression(mode, CompressionFormat.ZSTD)
     conns: dict[str, Any] = {}
     with writer:
         for topic, msgtype, stamp, msg in messages:
@@ -179,9 +186,22 @@ def write_ros2(folder: Path, messages: list[Message], storage: str = "mcap") -> 
 
 
 def storage_file(folder: Path) -> Path:
-    """The single ``.mcap`` / ``.db3`` file of a ROS2 bag folder (readable on its own)."""
-    (found,) = [p for p in folder.iterdir() if p.suffix in (".mcap", ".db3")]
+    """The single ``.mcap`` / ``.db3`` file of a ROS2 bag folder (readable on its own), or its ``.zstd``
+    file when the bag is compressed by file."""
+    (found,) = [p for p in folder.iterdir() if p.suffix in (".mcap", ".db3", ".zstd")]
     return found
+
+
+def declare_compression(folder: Path, mode: str, fmt: str = "zstd") -> Path:
+    """Rewrite the ``compression_mode`` / ``compression_format`` of the folder's metadata.yaml (the data
+    stays as written): ``mode`` ``FILE``, ``MESSAGE`` or ``""`` (none)."""
+    meta = folder / "metadata.yaml"
+    text = meta.read_text()
+    text, n_fmt = re.subn(r"(?m)^(\s*compression_format:).*$", rf"\1 '{fmt}'", text)
+    text, n_mode = re.subn(r"(?m)^(\s*compression_mode:).*$", rf"\1 '{mode}'", text)
+    assert n_fmt == n_mode == 1, text
+    meta.write_text(text)
+    return folder
 
 
 def write_bag(layout: str, where: Path, messages: Callable[[BagKind], list[Message]]) -> Path:
@@ -318,6 +338,25 @@ def test_ros1_chunk_decompressing_beyond_its_declared_size(tmp_path: Path, compr
     _expect_error(path, "corrupt ROS1 bag", "decompresses to more than the 16 bytes")
 
 
+@pytest.mark.parametrize(
+    ("value", "shown"),
+    [(b"\nz\x00", r"'\nz\x00'"), (b"\xff\xfe\x1b", r"b'\xff\xfe\x1b'"), (b"zst", "'zst'")],
+    ids=["newline-nul", "not-utf8", "unknown"],
+)
+def test_ros1_chunk_compression_field_is_quoted_escaped(tmp_path: Path, value: bytes, shown: str) -> None:
+    """A chunk's ``compression`` field holding control bytes: the message quoted them raw (two lines, a NUL);
+    it now shows them escaped, from both the chunk scanner and rosbags' strict reader."""
+    path = write_ros1(tmp_path / "c.bag", standard_messages("ros1"), "bz2")
+    data = bytearray(path.read_bytes())
+    chunk = next(r for r in ros1_records(bytes(data)) if _op(r) == 5)
+    at, old = chunk["fields"]["compression"]
+    assert old == b"bz2" and len(value) == len(old)
+    data[at : at + len(value)] = value
+    path.write_bytes(data)
+    message = _expect_error(path, "corrupt ROS1 bag", f"unsupported compression {shown}")
+    assert message.isprintable(), message
+
+
 # -- MCAP and ROS 2 ----------------------------------------------------------------------------------------
 
 
@@ -384,6 +423,65 @@ def test_db3_with_a_corrupt_page(tmp_path: Path) -> None:
     data[start + 4 : start + 8] = struct.pack("<I", 0xFFFFFFF0)  # cell count and cell content offset
     path.write_bytes(data)
     _expect_error(path, "corrupt bag, reading messages failed (database disk image is malformed)")
+
+
+# -- ROS 2 compression: what metadata.yaml declares against what the files hold ---------------------------
+
+
+@pytest.mark.parametrize(
+    ("storage", "mode"),
+    [("mcap", "file"), ("mcap", "message"), ("mcap", "storage"), ("sqlite3", "file"), ("sqlite3", "message")],
+)
+def test_ros2_zstd_compressed_bags_read(tmp_path: Path, storage: str, mode: str) -> None:
+    """Bags compressed by rosbags' writer (per file, per message, MCAP zstd chunks) read completely."""
+    folder = write_ros2(tmp_path / "z", standard_messages("ros2"), storage, compression=mode)
+    rec = open_dataset(folder)
+    assert rec.scans is not None and len(rec.scans) == 3 and len(rec.odometry) == 3
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+@pytest.mark.parametrize("mode", ["FILE", "MESSAGE"])
+def test_ros2_declared_zstd_but_stored_plain(tmp_path: Path, storage: str, mode: str) -> None:
+    """metadata.yaml says zstd, the storage file is not: was backports.zstd.ZstdError from rosbags
+    (``reader.open()`` for FILE, the message loop for MESSAGE)."""
+    folder = declare_compression(write_ros2(tmp_path / "z", standard_messages("ros2"), storage), mode)
+    hint = (
+        "declare a zstd compression_mode message that" if mode == "MESSAGE" else "declare a zstd compression"
+    )
+    _expect_error(folder, "corrupt ROS2 bag: zstd-compressed data does not decompress", hint)
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+@pytest.mark.parametrize(("written", "declared"), [("file", "MESSAGE"), ("message", "FILE"), ("message", "")])
+def test_ros2_compression_mode_other_than_written(
+    tmp_path: Path, storage: str, written: str, declared: str
+) -> None:
+    """Compressed one way, declared another (or not at all): one DatasetError line, whichever layer fails."""
+    folder = write_ros2(tmp_path / "z", standard_messages("ros2"), storage, compression=written)
+    _expect_error(declare_compression(folder, declared))
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_ros2_truncated_zstd_file(tmp_path: Path, storage: str) -> None:
+    """A file-compressed bag whose .zstd file is cut in half."""
+    folder = write_ros2(tmp_path / "z", standard_messages("ros2"), storage, compression="file")
+    data = storage_file(folder)
+    data.write_bytes(data.read_bytes()[: data.stat().st_size // 2])
+    _expect_error(folder)
+
+
+def test_mcap_damaged_zstd_chunk(tmp_path: Path) -> None:
+    """A single .mcap file with zstd chunks, one byte of a chunk's compressed data flipped."""
+    path = storage_file(write_ros2(tmp_path / "z", standard_messages("ros2"), "mcap", compression="storage"))
+    data = bytearray(path.read_bytes())
+    pos = 8
+    while data[pos] != 0x06:  # the first chunk record
+        pos += 9 + struct.unpack_from("<Q", data, pos + 1)[0]
+    (length,) = struct.unpack_from("<Q", data, pos + 1)
+    compressed_end = pos + 9 + length
+    data[compressed_end - 20] ^= 0xFF
+    path.write_bytes(data)
+    _expect_error(path)
 
 
 # -- non-finite and impossible values ----------------------------------------------------------------------

@@ -21,7 +21,7 @@ from datasets.numtext import NumberParseError, parse_stamps_ns
 from datasets.relations import RelationsError, read_relations
 from datasets.stamps import StampRangeError, decimal_to_ns, monotone_stamps_ns
 from datasets.validate import MAX_STAMP_NS, validate_recording
-from pipeline.config import load_config
+from pipeline.config import config_to_yaml, load_config
 from slam.trajectory_io import TrajectoryFormatError, read_g2o, read_tum
 
 HUGE_STAMPS = ["1e30", "-1e30", "1e9999999", "99999999999999999999999", "1e99999999999999999999"]
@@ -325,6 +325,44 @@ def test_kitti_scan_ranges_slice(tmp_path: Path) -> None:
     assert len(first) == 1 and first[0].dtype == np.float32
 
 
+# ---------------------------------------------------------------------------- quoted tokens escaped
+
+ESC_TOKEN = "1\x1b[2J\x7f"  # a number followed by a terminal escape sequence and DEL
+ESC_SHOWN = r"'1\x1b[2J\x7f'"
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "read"),
+    [
+        ("range.clf", flaser(ranges=f"1 {ESC_TOKEN} 3"), read_carmen),
+        ("count.clf", f"FLASER {ESC_TOKEN} 1 2 3 1 2 0.5 1 2 0.5 1.0 host 1.0", read_carmen),
+        ("stamp.clf", flaser(ipc=ESC_TOKEN), read_carmen),
+        ("value.relations", f"1.0 2.0 {ESC_TOKEN} 0 0 0 0 0", read_relations),
+        ("stamp.relations", f"1.0 {ESC_TOKEN} 0 0 0 0 0 0", read_relations),
+        ("stamp.tum", f"{ESC_TOKEN} 0 0 0 0 0 0 1", read_tum),
+        ("value.g2o", f"VERTEX_SE2 0 {ESC_TOKEN} 0 0", read_g2o),
+        ("id.g2o", f"VERTEX_SE2 {ESC_TOKEN} 0 0 0", read_g2o),
+        ("tag.g2o", "VERTEX\x1b[2J\x7f 0 0 0 0", read_g2o),
+    ],
+    ids=lambda v: v if isinstance(v, str) and "." in v and "\x1b" not in v else None,
+)
+def test_quoted_tokens_are_escaped(tmp_path: Path, name: str, text: str, read) -> None:
+    """A token holding control characters is quoted escaped (it reached the terminal raw: ESC, DEL)."""
+    path = _write(tmp_path / name, text + "\n")
+    with pytest.raises(GpomError) as err:
+        read(path)
+    message = str(err.value)
+    assert message.isprintable(), message
+    assert ESC_SHOWN in message or r"VERTEX\x1b[2J\x7f" in message, message
+
+
+def test_kitti_time_token_is_escaped(tmp_path: Path) -> None:
+    folder = _kitti(tmp_path, times_txt=f"{ESC_TOKEN}\n")
+    with pytest.raises(KittiError) as err:
+        read_kitti(folder)
+    assert str(err.value).isprintable() and ESC_SHOWN in str(err.value), str(err.value)
+
+
 # ------------------------------------------------------------------------------------------- config
 
 
@@ -387,6 +425,71 @@ def test_bad_file_value_is_still_blamed_on_the_file(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as err:
         load_config(path, {"mapping": {"resolution_m": None, "mapper": "gpfol"}})
     _one_line(err, path, "invalid value -1 for 'mapping.resolution_m'")
+
+
+BIG_DIGITS = "9" * 5000  # beyond Python's 4300-digit limit of int(str)
+
+
+@pytest.mark.parametrize(
+    ("text", "part"),
+    [
+        ("mapping: {resolution_m: !!float abc}", "line 1, column 25"),
+        ("scale: {workers: !!int 1.5}", "line 1, column 18"),
+        (f"scale: {{workers: {BIG_DIGITS}}}", "line 1, column 18"),
+        (f"scale: {{workers: !!int 1:{BIG_DIGITS}}}", "line 1"),
+        (f"scale: {{workers: !!float 1:{BIG_DIGITS}}}", "finite number"),
+        (f"input:\n  ? {BIG_DIGITS}\n  : 1\n", "line 2, column 5"),
+        ("input: {scan_topic: !!timestamp 2001-02-29}", "line 1, column 21"),
+        ("input: {scan_topic: !!timestamp 2001-13-45}", "line 1"),
+        ("input: {scan_topic: !!timestamp x}", "line 1, column 21: cannot read timestamp 'x'"),
+        ("input: {scan_topic: !!timestamp 2001-02-28}", "invalid value datetime.date(2001, 2, 28)"),
+        ("input: {scan_topic: !!timestamp '2001-12-14 21:59:43 +99'}", "line 1"),
+        ("input: {scan_topic: !!binary //79}", "invalid value b'\\xff\\xfe\\xfd'"),
+        ("input: {scan_topic: !!set {a: null}}", "'input.scan_topic'"),
+        ("scale: {workers: !!float 1e99999}", "finite number"),
+        (f"scale: {{workers: !!int 0x{'f' * 5000}}}", "invalid value <an integer of 6021 digits>"),
+        (f"scale:\n  ? !!int 0x{'f' * 5000}\n  : 1\n", "invalid value <an integer of 6021 digits>"),
+        ('mapping: {"\\e[31m\\0": 1}', r"unknown configuration key 'mapping.\x1b[31m\x00'"),
+        ('mapping: {mapper: "gp\\e[2J\\npol"}', r"invalid value 'gp\x1b[2J\npol'"),
+    ],
+    ids=[
+        "float-abc",
+        "int-1.5",
+        "int-5000-digits",
+        "sexagesimal-int-5000-digits",
+        "sexagesimal-float-5000-digits",
+        "key-5000-digits",
+        "timestamp-feb-29",
+        "timestamp-month-13",
+        "timestamp-not-a-date",
+        "timestamp-valid-date-for-a-string",
+        "timestamp-tz-99",
+        "binary-not-utf8",
+        "set",
+        "float-overflow",
+        "hex-int-6021-digits",
+        "hex-int-key",
+        "control-chars-in-key",
+        "control-chars-in-value",
+    ],
+)
+def test_config_values_yaml_cannot_construct_are_one_line(tmp_path: Path, text: str, part: str) -> None:
+    """Tags and scalars that PyYAML's constructors refuse with a ValueError (was a traceback), or build into
+    values whose repr fails (integers beyond 4300 digits) or spans lines: one printable ConfigError line."""
+    path = _write(tmp_path / "c.yaml", text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    _one_line(err, path, part)
+    assert str(err.value).isprintable() and len(str(err.value)) < 400, str(err.value)
+
+
+@pytest.mark.parametrize("value", ["2001-02-28", "2001-02-29", "2001-13-45", "2001-12-14t21:59:43.10-05:00"])
+def test_config_date_like_plain_values_stay_strings(tmp_path: Path, value: str) -> None:
+    """YAML 1.1 reads a plain ``2001-02-28`` as a date (and ``2001-02-29`` as a ValueError): the configuration
+    loader resolves no implicit timestamps, so a topic named like a date is that string."""
+    cfg = load_config(_write(tmp_path / "c.yaml", f"input:\n  scan_topic: {value}\n"))
+    assert cfg.input.scan_topic == value
+    assert load_config(_write(tmp_path / "resolved.yaml", config_to_yaml(cfg))) == cfg  # a run's config.yaml
 
 
 def test_every_error_here_is_a_gpom_error() -> None:

@@ -26,13 +26,44 @@ from typing import Any
 import apsw
 from rosbags import rosbag1, rosbag2
 from rosbags.interfaces import MessageDefinitionFormat
+from rosbags.rosbag2 import reader as rosbag2_reader
+from rosbags.rosbag2 import storage_mcap
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, TypesysError, get_types_from_idl, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from datasets.errors import DatasetError
+from datasets.errors import DatasetError, first_line, shown, shown_name, shown_names
 from datasets.ros.chunkscan import BagScanError, ChunkScanBag, first_overrun
 from datasets.ros.typestores import BagKind, standard_typestore
+
+
+def _zstd_errors() -> tuple[type[BaseException], ...]:
+    """The error classes of the zstd module rosbags decompresses with (``backports.zstd`` before Python 3.14,
+    ``compression.zstd`` since; ``zstandard`` in older rosbags), as rosbags' own modules import it."""
+    found: list[type[BaseException]] = []
+    for module in (rosbag2_reader, storage_mcap):
+        cls = getattr(getattr(module, "zstd", None), "ZstdError", None)
+        if isinstance(cls, type) and issubclass(cls, BaseException) and cls not in found:
+            found.append(cls)
+    return tuple(found)
+
+
+def _zstd_failure(path: Path, exc: BaseException, declared: str | None) -> DatasetError:
+    """The error for zstd data of the ROS 2 bag at ``path`` that does not decompress; ``declared``: the
+    compression mode its metadata.yaml declares (``file`` / ``message``), None when unknown or none."""
+    hint = ""
+    if declared is not None or path.is_dir():
+        mode = f"compression_mode {shown_name(declared)}" if declared else "compression"
+        hint = f"; does metadata.yaml declare a zstd {mode} that the files do not have?"
+    return DatasetError(
+        f"{path}: corrupt ROS2 bag: zstd-compressed data does not decompress ({first_line(exc)}){hint}"
+    )
+
+
+#: What rosbags raises for zstd data that does not decompress: a ROS 2 bag whose metadata.yaml declares
+#: ``compression_format: zstd`` (by FILE or by MESSAGE) while its files are not compressed, a damaged
+#: ``.zstd`` file, a damaged zstd chunk of an MCAP file.
+ZSTD_ERRORS: tuple[type[BaseException], ...] = _zstd_errors()
 
 # What a damaged or cut bag can make rosbags (or the decompressors and SQLite under it) raise. Only calls into
 # those libraries are guarded with it: a size field of 2^40 or 2^63 makes them allocate (MemoryError) or
@@ -56,15 +87,8 @@ BAG_IO_ERRORS: tuple[type[BaseException], ...] = (
     AttributeError,
     apsw.Error,
     sqlite3.Error,
+    *ZSTD_ERRORS,
 )
-
-
-def first_line(exc: BaseException) -> str:
-    """The first line of ``exc``'s message (its type name when empty, e.g. a bare MemoryError)."""
-    if isinstance(exc, MemoryError):
-        return "a size field asks for more memory than there is (MemoryError)"
-    text = str(exc).strip() or type(exc).__name__
-    return text.splitlines()[0]
 
 
 @dataclass(frozen=True)
@@ -105,9 +129,8 @@ class Bag:
         """``/a (pkg/msg/A), /b (pkg/msg/B)`` or ``none``."""
         if not self.topics:
             return "none"
-        return ", ".join(
-            f"{t.name} ({t.msgtype})" for t in sorted(self.topics.values(), key=lambda t: t.name)
-        )
+        ordered = sorted(self.topics.values(), key=lambda t: t.name)
+        return shown_names(f"{t.name} ({t.msgtype})" for t in ordered)
 
     def raw_messages(
         self, topics: Collection[str], start: int | None = None, stop: int | None = None
@@ -134,12 +157,18 @@ class Bag:
                 if conn is None:
                     other = getattr(handle, "topic", "?")
                     raise DatasetError(
-                        f"{self.path}: corrupt bag index: it lists a message of topic {other} "
-                        f"under {', '.join(sorted({c.topic for c in conns}))}"
+                        f"{self.path}: corrupt bag index: it lists a message of topic {shown_name(other)} "
+                        f"under {shown_names(sorted({c.topic for c in conns}))}"
                     )
                 yield conn, t, raw
         except DatasetError:
             raise
+        except ZSTD_ERRORS as exc:
+            try:  # rosbags' Reader says what metadata.yaml declares ('message'); other readers have no such
+                declared = getattr(self._reader, "compression_mode", None)
+            except BAG_IO_ERRORS:
+                declared = None
+            raise _zstd_failure(self.path, exc, declared if isinstance(declared, str) else None) from None
         except (*BAG_IO_ERRORS, BagScanError) as exc:
             raise DatasetError(
                 f"{self.path}: corrupt bag, reading messages failed ({first_line(exc)})"
@@ -152,16 +181,17 @@ class Bag:
         for conn, t, raw in self._raw_messages(topics, start, stop):
             msgtype = self.topics[conn.topic].msgtype
             if conn.msgtype != msgtype:
+                types = shown_names([msgtype, conn.msgtype])
                 raise DatasetError(
-                    f"{self.path}: topic {conn.topic} holds messages of two types ({msgtype}, {conn.msgtype})"
+                    f"{self.path}: topic {shown_name(conn.topic)} holds messages of two types ({types})"
                 )
             decode = self._decoder(conn)
             try:
                 msg = decode(raw)
             except BAG_IO_ERRORS as exc:
                 raise DatasetError(
-                    f"{self.path}: topic {conn.topic}: a message cannot be decoded as "
-                    f"{msgtype} ({first_line(exc)})"
+                    f"{self.path}: topic {shown_name(conn.topic)}: a message cannot be decoded as "
+                    f"{shown_name(msgtype)} ({first_line(exc)})"
                 ) from None
             yield conn.topic, t, msg
 
@@ -184,16 +214,16 @@ class Bag:
                 have = standard.hash_rihs01(conn.msgtype)
             if not conn.digest or conn.digest == have:
                 return standard
+        topic, msgtype, digest = (shown_name(v) for v in (conn.topic, conn.msgtype, conn.digest))
         if conn.msgdef_format == MessageDefinitionFormat.NONE or not conn.msgdef:
             if conn.msgtype in standard.fielddefs:
                 self.notes.append(
-                    f"{conn.topic}: hash {conn.digest} differs from the standard {conn.msgtype} and the bag "
+                    f"{topic}: hash {digest} differs from the standard {msgtype} and the bag "
                     "embeds no definition; decoded with the standard definition"
                 )
                 return standard
             raise DatasetError(
-                f"{self.path}: topic {conn.topic}: unknown message type {conn.msgtype} "
-                "and no definition in the bag"
+                f"{self.path}: topic {topic}: unknown message type {msgtype} and no definition in the bag"
             )
         store = get_typestore(Stores.EMPTY)
         try:
@@ -214,13 +244,13 @@ class Bag:
                 have = store.hash_rihs01(conn.msgtype)
         except (TypesysError, *BAG_IO_ERRORS) as exc:
             raise DatasetError(
-                f"{self.path}: topic {conn.topic}: the bag's definition of {conn.msgtype} does not parse "
-                f"({first_line(exc)}) and its hash {conn.digest} is not the standard one"
+                f"{self.path}: topic {topic}: the bag's definition of {msgtype} does not parse "
+                f"({first_line(exc)}) and its hash {digest} is not the standard one"
             ) from None
         if conn.digest and have != conn.digest:
             raise DatasetError(
-                f"{self.path}: topic {conn.topic}: the bag's definition of {conn.msgtype} hashes to {have}, "
-                f"not to the declared {conn.digest}"
+                f"{self.path}: topic {topic}: the bag's definition of {msgtype} hashes to "
+                f"{shown_name(have)}, not to the declared {digest}"
             )
         return store
 
@@ -250,33 +280,28 @@ def _topics_of(conns: list[_Conn], counts: list[int]) -> dict[str, TopicInfo]:
     return topics
 
 
-def _short(value: object) -> str:
-    """``repr(value)`` cut to 60 characters (a damaged field can hold anything)."""
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
 def _checked_conns(path: Path, raw: list[tuple[Any, ...]]) -> tuple[list[_Conn], list[int]]:
     """``_Conn`` objects and message counts from ``(topic, msgtype, digest, format, msgdef, handle, key,
     count)`` rows; a damaged metadata.yaml / SQLite table can hold any type there, so each is checked."""
     conns, counts = [], []
     for topic, msgtype, digest, fmt, msgdef, handle, key, count in raw:
         if not isinstance(topic, str) or not topic:
-            raise DatasetError(f"{path}: corrupt bag: a topic name is {_short(topic)}, not a string")
+            raise DatasetError(f"{path}: corrupt bag: a topic name is {shown(topic)}, not a string")
         if not topic.isprintable():
-            raise DatasetError(f"{path}: corrupt bag: topic name {_short(topic)} has control characters")
+            raise DatasetError(f"{path}: corrupt bag: topic name {shown(topic)} has control characters")
+        name = f"{path}: corrupt bag: topic {shown_name(topic)}"
         if not isinstance(msgtype, str) or not msgtype or not msgtype.isprintable():
-            raise DatasetError(f"{path}: corrupt bag: topic {topic} has message type {_short(msgtype)}")
+            raise DatasetError(f"{name} has message type {shown(msgtype)}")
         if not isinstance(digest, str) or not isinstance(msgdef, str):
-            raise DatasetError(f"{path}: corrupt bag: topic {topic}: type hash or definition is not a string")
+            raise DatasetError(f"{name}: type hash or definition is not a string")
         if not digest.isprintable():
-            raise DatasetError(f"{path}: corrupt bag: topic {topic} has type hash {_short(digest)}")
+            raise DatasetError(f"{name} has type hash {shown(digest)}")
         if not isinstance(fmt, MessageDefinitionFormat):
-            raise DatasetError(f"{path}: corrupt bag: topic {topic}: unknown definition format {_short(fmt)}")
+            raise DatasetError(f"{name}: unknown definition format {shown(fmt)}")
         if isinstance(count, bool) or not isinstance(count, int) or count < 0:
-            raise DatasetError(f"{path}: corrupt bag: topic {topic} has message count {_short(count)}")
+            raise DatasetError(f"{name} has message count {shown(count)}")
         if isinstance(key, bool) or not isinstance(key, int):
-            raise DatasetError(f"{path}: corrupt bag: topic {topic} has connection id {_short(key)}")
+            raise DatasetError(f"{name} has connection id {shown(key)}")
         conns.append(_Conn(topic, msgtype, digest, fmt, msgdef, handle, key))
         counts.append(count)
     return conns, counts
@@ -394,6 +419,8 @@ def open_ros2(path: Path) -> Bag:
             (c.topic, c.msgtype, c.digest or "", c.msgdef.format, c.msgdef.data, c, c.id, c.msgcount)
             for c in reader.connections
         ]
+    except ZSTD_ERRORS as exc:
+        raise _zstd_failure(path, exc, None) from None
     except (*BAG_IO_ERRORS, FileNotFoundError) as exc:
         raise DatasetError(f"{path}: corrupt or unreadable ROS2 bag ({first_line(exc)})") from None
     return _open_bag(path, "ros2", reader, raw)

@@ -25,6 +25,8 @@ import lz4.frame
 from rosbags.rosbag1.reader import normalize as normalize_topic
 from rosbags.typesys.msg import normalize_msgtype
 
+from datasets.errors import first_line, shown
+
 OP_MSGDATA = 2
 OP_BAGHEADER = 3
 OP_IDXDATA = 4
@@ -61,7 +63,7 @@ class _Chunk:
     data_pos: int
     data_len: int
     size: int
-    compression: str
+    compression: bytes  # the header field as found: b"none", b"bz2", b"lz4" or anything a damaged bag holds
 
 
 def _parse_fields(block: bytes | memoryview, where: str) -> dict[str, bytes]:
@@ -127,16 +129,17 @@ def _connection(fields: dict[str, bytes], data: bytes | memoryview, where: str) 
     return ScannedConnection(conn, topic, normalize_msgtype(msgtype), md5, msgdef)
 
 
-def _decompress(raw: bytes, compression: str, size: int, where: str) -> bytes:
+def _decompress(raw: bytes, compression: bytes, size: int, where: str) -> bytes:
     """``raw`` decompressed; more than the declared ``size`` bytes is an error (never decompressed)."""
-    if compression == "none":
+    if compression == b"none":
         return raw
-    if compression == "bz2":
+    if compression == b"bz2":
         decompressor: Any = bz2.BZ2Decompressor()
-    elif compression == "lz4":
+    elif compression == b"lz4":
         decompressor = lz4.frame.LZ4FrameDecompressor()
     else:
-        raise BagScanError(f"{where}: unsupported compression '{compression}'")
+        raise BagScanError(f"{where}: unsupported compression {shown(compression)}")
+    name = compression.decode("ascii")
     parts: list[bytes] = []
     total = 0
     data = raw
@@ -149,9 +152,9 @@ def _decompress(raw: bytes, compression: str, size: int, where: str) -> bytes:
             if total > size:
                 raise BagScanError(f"{where}: decompresses to more than the {size} bytes its header declares")
             if not part and decompressor.needs_input:
-                raise BagScanError(f"{where}: {compression} data is cut off")
+                raise BagScanError(f"{where}: {name} data is cut off")
     except (OSError, ValueError, RuntimeError, EOFError, MemoryError) as exc:
-        raise BagScanError(f"{where}: {compression} data does not decompress ({exc})") from None
+        raise BagScanError(f"{where}: {name} data does not decompress ({first_line(exc)})") from None
     return b"".join(parts)
 
 
@@ -242,7 +245,7 @@ class ChunkScanBag:
                 where = f"chunk at byte {pos}"
                 if dpos + dlen > index_pos:
                     raise BagScanError(f"{where}: its data runs into the index")
-                compression = fields.get("compression", b"").decode("latin-1")
+                compression = fields.get("compression", b"")
                 chunk = _Chunk(dpos, dlen, _u32(fields, "size", where), compression)
                 counts = self._scan_chunk(len(self._chunks), chunk, pos, where)
                 self._chunks.append(chunk)
@@ -321,13 +324,14 @@ class ChunkScanBag:
                 for k in range(count)
             }
             if declared != chunk_counts[i]:
+                found = shown(chunk_counts[i])
                 raise BagScanError(
-                    f"{where}: declares message counts {declared} but the chunk holds {chunk_counts[i]}"
+                    f"{where}: declares message counts {shown(declared)} but the chunk holds {found}"
                 )
             pos = dpos + dlen
         unknown = {m[1] for m in self._messages} - self.connections.keys()
         if unknown:
-            raise BagScanError(f"messages of undeclared connections {sorted(unknown)}")
+            raise BagScanError(f"messages of undeclared connections {shown(sorted(unknown))}")
 
     def _chunk_data(self, chunk: _Chunk, where: str) -> bytes:
         raw = self._buf[chunk.data_pos : chunk.data_pos + chunk.data_len]

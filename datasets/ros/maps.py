@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from datasets.errors import DatasetError
+from datasets.errors import DatasetError, shown_name
 from datasets.ros.bag import open_bag
 from datasets.ros.typestores import header_msg, pose_msg, time_msg, yaw_of_quaternion
 from datasets.ros.writer import BagWriter, _transform_stamped, bag_kind_of_path, open_bag_writer
@@ -294,7 +294,7 @@ def read_map_bag(path: Path) -> dict[str, Raster]:
                     i.origin.orientation.w,
                 )
                 if abs(yaw) > 1e-9:
-                    raise DatasetError(f"{path}: {topic}: rotated map origins are not supported")
+                    raise DatasetError(f"{path}: {shown_name(topic)}: rotated map origins are not supported")
                 frame = msg.header.frame_id
                 out[topic] = Raster({"value": values}, float(i.resolution), origin, frame)
                 continue

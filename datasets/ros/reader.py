@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 
 from datasets.cloud import cloud_to_scan
 from datasets.config import InputConfig
-from datasets.errors import DatasetError, TopicError
+from datasets.errors import DatasetError, TopicError, shown, shown_name, shown_names
 from datasets.ros.bag import Bag, open_bag
 from datasets.ros.typestores import BagKind, stamp_ns_of, yaw_of_quaternion
 from datasets.types import (
@@ -115,9 +115,14 @@ class _BagReading:
     def _require(self, topic: str, types: Sequence[str], what: str) -> str:
         info = self.bag.topics.get(topic)
         if info is None:
-            raise TopicError(f"{self.path}: no {what} topic {topic}; topics: {self.bag.describe_topics()}")
+            raise TopicError(
+                f"{self.path}: no {what} topic {shown_name(topic)}; topics: {self.bag.describe_topics()}"
+            )
         if info.msgtype not in types:
-            raise TopicError(f"{self.path}: {what} topic {topic} is {info.msgtype}, not {' or '.join(types)}")
+            raise TopicError(
+                f"{self.path}: {what} topic {shown_name(topic)} is {shown_name(info.msgtype)}, "
+                f"not {' or '.join(types)}"
+            )
         return topic
 
     def scan_topics(self) -> list[str]:
@@ -142,7 +147,7 @@ class _BagReading:
                 f"{self.bag.describe_topics()} (scan topic 'none' reads the bag without scans)"
             )
         raise TopicError(
-            f"{self.path}: several scan topics ({', '.join(found)}); choose one with --scan-topic "
+            f"{self.path}: several scan topics ({shown_names(found)}); choose one with --scan-topic "
             "(or 'all' for every LaserScan topic)"
         )
 
@@ -154,7 +159,7 @@ class _BagReading:
                 candidates = local
         if len(candidates) > 1:
             raise TopicError(
-                f"{self.path}: several {what} topics ({', '.join(candidates)}); choose one with {option}"
+                f"{self.path}: several {what} topics ({shown_names(candidates)}); choose one with {option}"
             )
         return candidates[0] if candidates else None
 
@@ -203,7 +208,9 @@ class _BagReading:
                     t for t in self._of_types([ODOM_TYPE]) if _in_namespace(t, ns) and "ground_truth" not in t
                 ]
                 if len(local) > 1:
-                    raise TopicError(f"{self.path}: several odometry topics in {ns} ({', '.join(local)})")
+                    raise TopicError(
+                        f"{self.path}: several odometry topics in {shown_name(ns)} ({shown_names(local)})"
+                    )
                 if local:
                     by_source[topic] = self._read_poses(local[0])
                     meta.setdefault("odom_topics", {})[topic] = local[0]
@@ -263,7 +270,7 @@ class _BagReading:
     def _check_order(self, topic: str, i: int, stamp: int, previous: int | None) -> None:
         if previous is not None and stamp < previous:
             raise DatasetError(
-                f"{self.path}: topic {topic}: header stamp goes backwards at message {i} "
+                f"{self.path}: topic {shown_name(topic)}: header stamp goes backwards at message {i} "
                 f"({stamp} ns after {previous} ns)"
             )
 
@@ -277,6 +284,7 @@ class _BagReading:
         source: list[int] = []
         angle_cache: dict[tuple[float, float, int], NDArray] = {}
         for k, topic in enumerate(topics):
+            where = f"{self.path}: topic {shown_name(topic)}"
             previous = None
             for i, (_, _, msg) in enumerate(self.bag.messages([topic])):
                 stamp = stamp_ns_of(msg.header.stamp)
@@ -284,14 +292,12 @@ class _BagReading:
                 previous = stamp
                 r = np.array(msg.ranges, dtype=np.float32)
                 if r.size == 0:
-                    raise DatasetError(
-                        f"{self.path}: topic {topic}: message {i} (stamp {stamp} ns) is an empty scan"
-                    )
+                    raise DatasetError(f"{where}: message {i} (stamp {stamp} ns) is an empty scan")
                 negative = np.flatnonzero(np.isfinite(r) & (r < 0))
                 if negative.size:
                     j = int(negative[0])
                     raise DatasetError(
-                        f"{self.path}: topic {topic}: message {i} (stamp {stamp} ns) has {negative.size} "
+                        f"{where}: message {i} (stamp {stamp} ns) has {negative.size} "
                         f"negative ranges (beam {j}: {r[j]} m)"
                     )
                 key = (float(msg.angle_min), float(msg.angle_increment), int(r.size))
@@ -300,14 +306,14 @@ class _BagReading:
                         beams = beam_angles_rad(*key)
                     if not np.isfinite(beams).all():
                         raise DatasetError(
-                            f"{self.path}: topic {topic}: message {i} (stamp {stamp} ns) has non-finite beam "
+                            f"{where}: message {i} (stamp {stamp} ns) has non-finite beam "
                             f"angles (angle_min {key[0]!r}, angle_increment {key[1]!r}, {key[2]} beams)"
                         )
                     angle_cache[key] = beams
                 limits = (float(msg.range_min), float(msg.range_max))
                 if not (np.isfinite(limits).all() and 0.0 <= limits[0] < limits[1]):
                     raise DatasetError(
-                        f"{self.path}: topic {topic}: message {i} (stamp {stamp} ns) has range limits "
+                        f"{where}: message {i} (stamp {stamp} ns) has range limits "
                         f"[{limits[0]!r}, {limits[1]!r}] m (need finite, 0 <= range_min < range_max)"
                     )
                 ranges.append(r)
@@ -318,7 +324,7 @@ class _BagReading:
                 frames.append(msg.header.frame_id)
                 source.append(k)
         if not ranges:
-            raise DatasetError(f"{self.path}: scan topic {', '.join(topics)} holds no messages")
+            raise DatasetError(f"{self.path}: scan topic {shown_names(topics)} holds no messages")
         order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
         return ScanSequence(
             [ranges[i] for i in order],
@@ -334,12 +340,13 @@ class _BagReading:
     def _read_clouds(self, topic: str) -> tuple[ScanSequence, CloudSequence]:
         cfg = self.cfg
         ranges, angles, stamps, frames, bag_times = [], [], [], [], []
+        where = f"{self.path}: topic {shown_name(topic)}"
         previous = None
         for i, (_, t, msg) in enumerate(self.bag.messages([topic])):
             stamp = stamp_ns_of(msg.header.stamp)
             self._check_order(topic, i, stamp, previous)
             previous = stamp
-            points, _ = cloud_points(msg, f"{self.path}: topic {topic}: message {i}")
+            points, _ = cloud_points(msg, f"{where}: message {i}")
             r, a = cloud_to_scan(points, cfg.cloud_height_band_m, cfg.cloud_scan_beams, cfg.cloud_range_max_m)
             ranges.append(r)
             angles.append(a)
@@ -347,7 +354,7 @@ class _BagReading:
             frames.append(msg.header.frame_id)
             bag_times.append(t)
         if not ranges:
-            raise DatasetError(f"{self.path}: scan topic {topic} holds no messages")
+            raise DatasetError(f"{self.path}: scan topic {shown_name(topic)} holds no messages")
         scans = ScanSequence(ranges, angles, stamps, 0.0, cfg.cloud_range_max_m, frames, sources=[topic])
         loader = _CloudLoader(self.path, self.bag.kind, topic, bag_times)
         return scans, CloudSequence(np.asarray(stamps, dtype=np.int64), loader)
@@ -355,6 +362,7 @@ class _BagReading:
     def _read_poses(self, topic: str) -> Trajectory:
         """A trajectory from an Odometry / PoseStamped / PoseWithCovarianceStamped topic."""
         msgtype = self.bag.topics[topic].msgtype
+        where = f"{self.path}: topic {shown_name(topic)}"
         stamps, poses, covs = [], [], []
         frame = "world"
         previous = None
@@ -368,7 +376,7 @@ class _BagReading:
             xytheta = (float(pose.position.x), float(pose.position.y), yaw_of_quaternion(q.x, q.y, q.z, q.w))
             if not np.isfinite(xytheta).all():
                 raise DatasetError(
-                    f"{self.path}: topic {topic}: message {i} (stamp {stamp} ns) has a non-finite pose "
+                    f"{where}: message {i} (stamp {stamp} ns) has a non-finite pose "
                     f"(x {xytheta[0]!r}, y {xytheta[1]!r}, yaw {xytheta[2]!r})"
                 )
             stamps.append(stamp)
@@ -378,8 +386,7 @@ class _BagReading:
                 c = c[np.ix_([0, 1, 5], [0, 1, 5])]
                 if not np.isfinite(c).all():
                     raise DatasetError(
-                        f"{self.path}: topic {topic}: message {i} (stamp {stamp} ns) has a non-finite "
-                        "pose covariance"
+                        f"{where}: message {i} (stamp {stamp} ns) has a non-finite pose covariance"
                     )
                 covs.append(c)
         cov = np.asarray(covs) if covs and np.any(np.asarray(covs)) else None
@@ -390,7 +397,7 @@ class _BagReading:
     def _at_scans(self, traj: Trajectory, stamps: NDArray[np.int64], topic: str) -> NDArray:
         """Poses of ``traj`` at ``stamps``; scans outside its time span get the end pose (counted in meta)."""
         if len(traj) == 0:
-            raise DatasetError(f"{self.path}: pose topic {topic} holds no messages")
+            raise DatasetError(f"{self.path}: pose topic {shown_name(topic)} holds no messages")
         outside = int(np.count_nonzero((stamps < traj.stamps_ns[0]) | (stamps > traj.stamps_ns[-1])))
         self.clamped[topic] = outside
         return traj.interpolate(stamps)
@@ -413,8 +420,8 @@ class _BagReading:
             pick = local or glob
             if len(pick) > 1:
                 raise TopicError(
-                    f"{self.path}: several ground-truth topics for namespace '{ns}' ({', '.join(pick)}); "
-                    "choose one with input.reference_topic"
+                    f"{self.path}: several ground-truth topics for namespace {shown(ns)} "
+                    f"({shown_names(pick)}); choose one with input.reference_topic"
                 )
             chosen.append(pick[0] if pick else None)
         meta["reference_topics"] = dict(zip(topics, chosen, strict=True))
@@ -467,7 +474,7 @@ class _BagReading:
                         continue
                     where = (
                         f"{self.path}: topic {name}: message {i}: transform "
-                        f"{_printable(key[0])} -> {_printable(key[1])}"
+                        f"{shown_name(key[0])} -> {shown_name(key[1])}"
                     )
                     try:
                         edges[key] = _transform_matrix(tr.transform, where)
@@ -485,11 +492,6 @@ class _BagReading:
                         raise DatasetError(error)
             out.append(None if m is None else np.array([m[0, 3], m[1, 3], np.arctan2(m[1, 0], m[0, 0])]))
         return out
-
-
-def _printable(text: str) -> str:
-    """``text`` itself, or its ``repr`` when it holds control characters (messages stay one line)."""
-    return text if text.isprintable() else repr(text)
 
 
 def _transform_matrix(tf: object, where: str) -> NDArray:
@@ -563,7 +565,7 @@ def cloud_points(msg: object, where: str) -> tuple[NDArray[np.float32], NDArray[
     fields = {f.name: f for f in msg.fields}  # type: ignore[attr-defined]
     missing = [n for n in ("x", "y", "z") if n not in fields]
     if missing:
-        raise DatasetError(f"{where}: point cloud without field(s) {', '.join(missing)}")
+        raise DatasetError(f"{where}: point cloud without field(s) {shown_names(missing)}")
     endian = ">" if msg.is_bigendian else "<"  # type: ignore[attr-defined]
     names = ["x", "y", "z"] + (["intensity"] if "intensity" in fields else [])
     formats, offsets = [], []
@@ -612,6 +614,8 @@ class _CloudLoader:
         with open_bag(self.path, self.kind) as bag:
             for k, (_, _, msg) in enumerate(bag.messages([self.topic], start=t, stop=t + 1)):
                 if k == ordinal:
-                    pts, intensity = cloud_points(msg, f"{self.path}: topic {self.topic}: cloud {i}")
+                    pts, intensity = cloud_points(
+                        msg, f"{self.path}: topic {shown_name(self.topic)}: cloud {i}"
+                    )
                     return PointCloud(pts, stamp_ns_of(msg.header.stamp), msg.header.frame_id, intensity)
-        raise DatasetError(f"{self.path}: topic {self.topic}: cloud {i} is gone from the bag")
+        raise DatasetError(f"{self.path}: topic {shown_name(self.topic)}: cloud {i} is gone from the bag")

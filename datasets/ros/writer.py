@@ -48,9 +48,8 @@ from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, Qo
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.serde import SerdeError
 
-from datasets.errors import DatasetError, UnknownFormatError
+from datasets.errors import DatasetError, UnknownFormatError, first_line, shown, shown_name, shown_names
 from datasets.progress import stage
-from datasets.ros.bag import first_line
 from datasets.ros.reader import SCAN_POSE_SUFFIX, namespace_of
 from datasets.ros.typestores import BagKind, header_msg, pose_msg, standard_typestore, time_msg
 from datasets.types import Recording, Trajectory
@@ -129,7 +128,9 @@ class BagWriter:
         conn = self._conns.get(key)
         if conn is None:
             if msgtype not in self.types:
-                raise DatasetError(f"{self.path}: unknown message type {msgtype} for topic {topic}")
+                raise DatasetError(
+                    f"{self.path}: unknown message type {shown_name(msgtype)} for topic {shown_name(topic)}"
+                )
             if self.kind == "ros1":
                 conn = self._raw.add_connection(
                     topic, msgtype, typestore=self.typestore, latching=1 if latching else None
@@ -147,7 +148,8 @@ class BagWriter:
                 data = self.typestore.serialize_cdr(msg, msgtype)
         except (SerdeError, TypeError, ValueError, AttributeError, KeyError) as exc:
             raise DatasetError(
-                f"{self.path}: a {msgtype} message for {topic} cannot be serialised ({first_line(exc)})"
+                f"{self.path}: a {shown_name(msgtype)} message for {shown_name(topic)} cannot be serialised "
+                f"({first_line(exc)})"
             ) from None
         self._raw.write(conn, int(stamp_ns), data)
         self.counts[topic] = self.counts.get(topic, 0) + 1
@@ -257,7 +259,9 @@ def _source_topics(recording: Recording, scan_topic: str) -> list[str]:
         return [scan_topic]
     topics = [s if s.startswith("/") else f"/{s}/scan" for s in scans.sources]
     if len(set(topics)) != len(topics):
-        raise DatasetError(f"{recording.source}: scan sources {scans.sources} do not map to distinct topics")
+        raise DatasetError(
+            f"{recording.source}: scan sources {shown(scans.sources)} do not map to distinct topics"
+        )
     return topics
 
 
@@ -391,8 +395,8 @@ def write_recording(
                     continue
                 if multi and traj is recording.reference and len(set(suffix_topics)) != len(suffix_topics):
                     raise DatasetError(
-                        f"{recording.source}: scan topics {topics} share a namespace; per-source reference "
-                        "topics would collide"
+                        f"{recording.source}: scan topics {shown_names(topics)} share a namespace; "
+                        "per-source reference topics would collide"
                     )
                 if len(traj) != len(scans):
                     raise DatasetError(

@@ -31,7 +31,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from datasets.errors import DatasetError
+from datasets.errors import DatasetError, first_line
 from datasets.simulation.geometry import World
 
 GT_SUFFIX = ".gt.npz"
@@ -222,7 +222,7 @@ def load_ground_truth(path: str | Path) -> GroundTruth:
         with np.load(p, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise DatasetError(f"{p}: not a readable ground-truth .npz ({exc})") from None
+        raise DatasetError(f"{p}: not a readable ground-truth .npz ({first_line(exc)})") from None
     missing = [k for k in ("occupancy", "resolution_m", "origin_xy_m") if k not in data]
     if missing:
         raise DatasetError(f"{p}: ground-truth file lacks {', '.join(missing)}")

@@ -2,9 +2,13 @@
 
 Seed bags (LaserScan, Odometry, tf_static; PointCloud2 in the ``cloud`` seeds) are written once per module
 with rosbags' own writers: ROS1 plain, bz2 and lz4 chunks; ROS2 MCAP and SQLite3, as single files and as
-folders. The properties then damage them (byte flips, truncations, length fields set to huge values,
-metadata.yaml values of the wrong type) or write new bags whose message fields hold non-finite, huge or
-inconsistent values, and check :func:`~tests.fuzz.properties.reads_cleanly` on ``open_dataset``.
+folders, plain or zstd-compressed (by file, by message, MCAP zstd chunks). The properties then damage them
+(byte flips, truncations, length fields set to huge values; metadata.yaml values of the wrong type, YAML
+tags, dates and 5000-digit numbers; a declared compression mode and format other than the files'; control
+and non-UTF-8 bytes in every text field of ROS1 record headers and connections, of MCAP records and of the
+SQLite topics table) or write new bags whose message fields hold non-finite, huge or inconsistent values,
+and check :func:`~tests.fuzz.properties.reads_cleanly` on ``open_dataset``: a valid recording, or a
+DatasetError whose message is one printable line.
 
 Every crash found is kept under ``tests/fuzz/corpus/ros/`` (a file, or a folder for a ROS2 bag folder) and
 replayed by :func:`test_corpus`.
@@ -14,7 +18,9 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 import shutil
+import sqlite3
 import struct
 import tempfile
 from pathlib import Path
@@ -28,7 +34,7 @@ from ruamel.yaml import YAML
 
 from datasets.registry import open_dataset
 from datasets.ros.typestores import BagKind, header_msg, standard_typestore
-from tests.fuzz.properties import CORPUS, reads_cleanly
+from tests.fuzz.properties import CORPUS, YAML_ODD_SCALARS, reads_cleanly
 from tests.test_bad_input_ros import (
     STEP_NS,
     T0,
@@ -39,14 +45,25 @@ from tests.test_bad_input_ros import (
     scan_msg,
     serialize,
     standard_messages,
+    storage_file,
     tf_static_msg,
     write_bag,
+    write_ros2,
 )
 
 ROS_CORPUS = CORPUS / "ros"
 FILE_LAYOUTS = ["bag", "bag-bz2", "bag-lz4", "mcap", "db3"]
 FOLDER_LAYOUTS = ["folder", "folder-db3"]
 DERIVED_SEEDS = ["bag-cloud", "mcap-cloud", "bag-badindex", "bag-lz4-badindex"]
+#: ROS 2 bags compressed by rosbags' writer: name -> (storage, zstd compression mode, open the folder?)
+COMPRESSED_SEEDS = {
+    "folder-zstd-file": ("mcap", "file", True),
+    "folder-zstd-message": ("mcap", "message", True),
+    "folder-db3-zstd-file": ("sqlite3", "file", True),
+    "folder-db3-zstd-message": ("sqlite3", "message", True),
+    "mcap-zstd-chunks": ("mcap", "storage", False),
+}
+ROS2_FOLDERS = [*FOLDER_LAYOUTS, *(name for name, (_, _, folder) in COMPRESSED_SEEDS.items() if folder)]
 U32_HUGE = [0, 1, 0x7FFFFFFF, 0x80000000, 0xFFFFFFF0, 0xFFFFFFFF]
 U64_HUGE = [0, 1, 1 << 31, 1 << 40, 1 << 62, 1 << 63, (1 << 64) - 1]
 
@@ -81,7 +98,7 @@ class Seed:
     @property
     def data_file(self) -> Path:
         """The file holding the messages (the bag, .mcap or .db3)."""
-        return next(p for p in self.files if p.suffix in (".bag", ".mcap", ".db3"))
+        return next(p for p in self.files if p.suffix in (".bag", ".mcap", ".db3", ".zstd"))
 
     def write(self, root: Path, replace: dict[Path, bytes] | None = None) -> Path:
         for rel, data in {**self.files, **(replace or {})}.items():
@@ -96,6 +113,15 @@ def _seed(base: Path, layout: str, clouds: bool = False, name: str | None = None
     root.mkdir()
     target = write_bag(layout, root, lambda kind: standard_messages(kind, n=3, clouds=clouds))
     return Seed(name, root, target)
+
+
+def _compressed_seed(base: Path, name: str) -> Seed:
+    """A seed of :data:`COMPRESSED_SEEDS`, written by rosbags with zstd compression."""
+    storage, mode, folder = COMPRESSED_SEEDS[name]
+    root = base / name
+    root.mkdir()
+    bag = write_ros2(root / "b2", standard_messages("ros2", n=3), storage, compression=mode)
+    return Seed(name, root, bag if folder else storage_file(bag))
 
 
 def _bad_index_seed(base: Path, layout: str) -> Seed:
@@ -119,6 +145,8 @@ def seeds(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Seed]:
     out["mcap-cloud"] = _seed(base, "mcap", clouds=True)
     for layout in ("bag", "bag-lz4"):
         out[f"{layout}-badindex"] = _bad_index_seed(base, layout)
+    for name in COMPRESSED_SEEDS:
+        out[name] = _compressed_seed(base, name)
     for name, seed in out.items():  # the seeds themselves read cleanly and completely
         with tempfile.TemporaryDirectory() as tmp:
             rec = _read(seed.write(Path(tmp)))
@@ -197,7 +225,10 @@ def byte_damage(draw: st.DrawFn, seed: Seed) -> bytes:
     return bytes(out)
 
 
-@given(data=st.data(), layout=st.sampled_from([*FILE_LAYOUTS, *FOLDER_LAYOUTS, *DERIVED_SEEDS]))
+@given(
+    data=st.data(),
+    layout=st.sampled_from([*FILE_LAYOUTS, *FOLDER_LAYOUTS, *DERIVED_SEEDS, *COMPRESSED_SEEDS]),
+)
 def test_damaged_bytes_read_cleanly(seeds: dict[str, Seed], data: st.DataObject, layout: str) -> None:
     seed = seeds[layout]
     rel = seed.data_file
@@ -209,7 +240,13 @@ def test_damaged_bytes_read_cleanly(seeds: dict[str, Seed], data: st.DataObject,
 
 # -- metadata.yaml of the wrong types ----------------------------------------------------------------------
 
+
+class RawYaml(str):
+    """A scalar written into metadata.yaml as it is (a tag, a date, a 5000-digit number), not as a string."""
+
+
 _ODD_VALUES = st.one_of(
+    YAML_ODD_SCALARS.map(RawYaml),
     st.none(),
     st.booleans(),
     st.integers(-(2**70), 2**70),
@@ -245,7 +282,28 @@ def _metadata(seed: Seed, rel: Path) -> Any:
     return copy.deepcopy(_METADATA_CACHE[key])
 
 
-@given(data=st.data(), layout=st.sampled_from(FOLDER_LAYOUTS))
+def _metadata_text(meta: Any) -> str:
+    """``meta`` as flow YAML (JSON, whose NaN / Infinity come back as strings: another wrong type), every
+    :class:`RawYaml` value written unquoted."""
+    raw: list[str] = []
+
+    def mark(node: Any) -> Any:
+        if isinstance(node, RawYaml):
+            raw.append(str(node))
+            return f"@@RAW{len(raw) - 1}@@"
+        if isinstance(node, dict):
+            return {k: mark(v) for k, v in node.items()}
+        if isinstance(node, list):
+            return [mark(v) for v in node]
+        return node
+
+    text = json.dumps(mark(meta))
+    for i, value in enumerate(raw):
+        text = text.replace(f'"@@RAW{i}@@"', value)
+    return text
+
+
+@given(data=st.data(), layout=st.sampled_from(ROS2_FOLDERS))
 def test_metadata_yaml_of_wrong_types_reads_cleanly(
     seeds: dict[str, Seed], data: st.DataObject, layout: str
 ) -> None:
@@ -264,10 +322,211 @@ def test_metadata_yaml_of_wrong_types_reads_cleanly(
             del parent[path[-1]]
         else:
             parent[path[-1]] = data.draw(_ODD_VALUES, label="value")
-    text = json.dumps(meta)  # JSON is YAML (NaN / Infinity come back as strings: another wrong type)
     with tempfile.TemporaryDirectory() as tmp:
-        target = seed.write(Path(tmp), {rel: text.encode()})
+        target = seed.write(Path(tmp), {rel: _metadata_text(meta).encode()})
         _outcome(reads_cleanly(lambda: _read(target)))
+
+
+# -- ROS 2 compression: declared against actual ----------------------------------------------------------
+
+#: What metadata.yaml may declare: the values rosbags knows in any case, others, and odd text.
+_DECLARED_MODES = st.sampled_from(["", "none", "NONE", "FILE", "file", "MESSAGE", "message", "STORAGE", "x"])
+_DECLARED_FORMATS = st.sampled_from(["", "zstd", "ZSTD", "lz4", "gzip", "none"])
+
+
+def _declared(meta_text: str, key: str, value: str) -> str:
+    """``meta_text`` with the value of ``key`` (compression_mode / compression_format) set to ``value``."""
+    quoted = json.dumps(value)  # a JSON string is a YAML double-quoted scalar
+    text, n = re.subn(rf"(?m)^(\s*{key}:).*$", lambda m: f"{m.group(1)} {quoted}", meta_text)
+    assert n == 1, meta_text
+    return text
+
+
+@given(
+    data=st.data(),
+    layout=st.sampled_from(ROS2_FOLDERS),
+    mode=_DECLARED_MODES | st.text(max_size=6),
+    fmt=_DECLARED_FORMATS | st.text(max_size=6),
+    damage=st.booleans(),
+)
+def test_declared_compression_reads_cleanly(
+    seeds: dict[str, Seed], data: st.DataObject, layout: str, mode: str, fmt: str, damage: bool
+) -> None:
+    """A ROS 2 folder (plain, or zstd by file or by message; MCAP or SQLite) whose metadata.yaml declares any
+    compression mode and format, its storage file damaged or not: a recording or one DatasetError line
+    (a declared zstd that the files do not hold was rosbags' ZstdError)."""
+    seed = seeds[layout]
+    rel = next(p for p in seed.files if p.name == "metadata.yaml")
+    text = seed.files[rel].decode()
+    text = _declared(_declared(text, "compression_mode", mode), "compression_format", fmt)
+    replace = {rel: text.encode()}
+    if damage:
+        replace[seed.data_file] = data.draw(byte_damage(seed), label="damaged")
+    with tempfile.TemporaryDirectory() as tmp:
+        target = seed.write(Path(tmp), replace)
+        _outcome(reads_cleanly(lambda: _read(target)))
+
+
+# -- control and non-UTF-8 bytes in the text fields of record headers ---------------------------------------
+
+_ROS1_TEXT_FIELDS = {"compression", "topic", "type", "md5sum", "message_definition", "callerid", "latching"}
+
+
+def _ros1_text_fields(data: bytes) -> list[tuple[int, int]]:
+    """(position, length) of every text field value of a ROS1 bag: in the record headers (top level and
+    inside uncompressed chunks) and in the connection records' data (type, md5sum, definition, ...)."""
+    out: list[tuple[int, int]] = []
+
+    def fields_at(start: int, end: int) -> None:  # a header-like field list: <len><name>=<value>...
+        pos = start
+        while pos + 4 <= end:
+            (flen,) = struct.unpack_from("<I", data, pos)
+            name, sep, value = data[pos + 4 : pos + 4 + flen].partition(b"=")
+            if sep and name.decode("latin-1") in _ROS1_TEXT_FIELDS:
+                out.append((pos + 4 + len(name) + 1, len(value)))
+            pos += 4 + flen
+
+    def walk(records: list[dict[str, Any]]) -> None:
+        for r in records:
+            for name, (value_pos, value) in r["fields"].items():
+                if name in _ROS1_TEXT_FIELDS:
+                    out.append((value_pos, len(value)))
+            op = r["fields"].get("op", (0, b""))[1]
+            if op == b"\x07":
+                fields_at(r["data_pos"], r["data_pos"] + r["data_len"])
+            elif op == b"\x05" and r["fields"].get("compression", (0, b""))[1] == b"none":
+                walk(ros1_records(data, r["data_pos"], r["data_pos"] + r["data_len"]))
+
+    walk(ros1_records(data))
+    return [(p, n) for p, n in out if n > 0]
+
+
+def _mcap_strings(data: bytes, start: int, end: int, out: list[tuple[int, int]]) -> None:
+    """(position, length) of the strings of the MCAP records between ``start`` and ``end``: header profile
+    and library, schema name, encoding and definition, channel topic, encoding and metadata, chunk
+    compression, metadata names and entries (and of the records inside uncompressed chunks)."""
+
+    def string(pos: int) -> int:  # records the string at pos, returns the position after it
+        (n,) = struct.unpack_from("<I", data, pos)
+        out.append((pos + 4, n))
+        return pos + 4 + n
+
+    def string_map(pos: int) -> None:
+        (size,) = struct.unpack_from("<I", data, pos)
+        pos, stop = pos + 4, pos + 4 + size
+        while pos < stop:
+            pos = string(string(pos))
+
+    pos = start
+    while pos + 9 <= end:
+        op = data[pos]
+        (length,) = struct.unpack_from("<Q", data, pos + 1)
+        body = pos + 9
+        if op == 0x01:  # header
+            string(string(body))
+        elif op == 0x03:  # schema: id, name, encoding, data
+            string(string(string(body + 2)))
+        elif op == 0x04:  # channel: id, schema id, topic, message encoding, metadata
+            string_map(string(string(body + 4)))
+        elif op == 0x06:  # chunk: start, end, size, crc, compression, records
+            after = string(body + 28)
+            (records,) = struct.unpack_from("<Q", data, after)
+            if after == body + 32:  # an empty compression string: walk the chunk's records
+                _mcap_strings(data, after + 8, after + 8 + records, out)
+        elif op == 0x0C:  # metadata: name, entries
+            string_map(string(body))
+        pos = body + length
+
+
+def _mcap_text_fields(data: bytes) -> list[tuple[int, int]]:
+    out: list[tuple[int, int]] = []
+    _mcap_strings(data, 8, len(data) - 8, out)
+    return [(p, n) for p, n in out if n > 0]
+
+
+#: Bytes for a text field: control characters (NUL, newline, ESC, DEL), bytes that are no UTF-8 (alone or
+#: starting a sequence), a bidi override in UTF-8, or any byte.
+_TEXT_BYTE = st.one_of(
+    st.sampled_from([0x00, 0x0A, 0x0D, 0x09, 0x1B, 0x7F, 0x85, 0xFF, 0xC3, 0xE2, 0x80, 0xAE]),
+    st.integers(0, 255),
+)
+
+
+@st.composite
+def text_field_damage(draw: st.DrawFn, seed: Seed) -> bytes:
+    """The seed's data file with one to three of its text fields (or a run inside one) overwritten, in
+    place, by control or non-UTF-8 bytes."""
+    out = bytearray(seed.files[seed.data_file])
+    fields = (
+        _mcap_text_fields(bytes(out)) if seed.data_file.suffix == ".mcap" else _ros1_text_fields(bytes(out))
+    )
+    for _ in range(draw(st.integers(1, 3))):
+        pos, length = draw(st.sampled_from(fields))
+        start = draw(st.integers(0, length - 1))
+        count = draw(st.integers(1, length - start))
+        out[pos + start : pos + start + count] = bytes(
+            draw(st.lists(_TEXT_BYTE, min_size=count, max_size=count))
+        )
+    return bytes(out)
+
+
+@given(
+    data=st.data(), layout=st.sampled_from(["bag", "bag-lz4", "bag-badindex", "mcap", "folder", "mcap-cloud"])
+)
+def test_text_fields_with_control_bytes_read_cleanly(
+    seeds: dict[str, Seed], data: st.DataObject, layout: str
+) -> None:
+    """Control and non-UTF-8 bytes in every text field a message may quote: ROS1 header and connection
+    fields (compression, topic, type, md5sum, definition, callerid, latching), MCAP strings (topic, schema
+    name and definition, encodings, metadata, chunk compression)."""
+    seed = seeds[layout]
+    damaged = data.draw(text_field_damage(seed), label="damaged")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = seed.write(Path(tmp), {seed.data_file: damaged})
+        _outcome(reads_cleanly(lambda: _read(path)))
+
+
+_DB3_TEXT = st.one_of(
+    st.text(max_size=8),
+    st.binary(max_size=8),
+    st.lists(_TEXT_BYTE, max_size=8).map(bytes),
+    st.sampled_from(["", "/scan\n", "\x1b[2J", "sensor_msgs/msg/LaserScan\x00"]),
+    st.none(),
+    st.integers(-(2**63), 2**63 - 1),
+)
+
+
+@given(
+    data=st.data(),
+    layout=st.sampled_from(["db3", "folder-db3"]),
+    column=st.sampled_from(
+        ["name", "type", "serialization_format", "offered_qos_profiles", "type_description_hash"]
+    ),
+)
+def test_db3_topic_columns_read_cleanly(
+    seeds: dict[str, Seed], data: st.DataObject, layout: str, column: str
+) -> None:
+    """A .db3 topics table whose text column holds control characters, bytes that are no UTF-8 (a BLOB),
+    NULL or an integer (SQLite does not enforce the declared types)."""
+    seed = seeds[layout]
+    value = data.draw(_DB3_TEXT, label="value")
+    row = data.draw(st.integers(1, 3), label="row")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = seed.write(Path(tmp))
+        db = sqlite3.connect(path if path.is_file() else storage_file(path))
+        try:
+            db.execute("PRAGMA writable_schema = ON")  # drop NOT NULL (a damaged file need not keep it)
+            db.execute("UPDATE sqlite_master SET sql = replace(sql, 'NOT NULL', '') WHERE name = 'topics'")
+            db.commit()
+        finally:
+            db.close()
+        db = sqlite3.connect(path if path.is_file() else storage_file(path))
+        try:
+            db.execute(f"UPDATE topics SET {column} = ? WHERE id = ?", (value, row))
+            db.commit()
+        finally:
+            db.close()
+        _outcome(reads_cleanly(lambda: _read(path)))
 
 
 # -- message fields: non-finite, huge, inconsistent --------------------------------------------------------

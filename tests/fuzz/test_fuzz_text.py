@@ -4,8 +4,10 @@ g2o and configuration files must read cleanly (:func:`tests.fuzz.properties.read
 Each property starts from small valid files written in a temporary folder (and, when the shared data is
 there, the first records of a real log read in place) and applies a few mutations: byte flips, truncations,
 inserted, deleted or duplicated lines, tokens replaced by non-finite, huge or malformed numbers, dropped or
-added fields, non-UTF-8 bytes. Every crash found is kept under ``corpus/text/`` and replayed by
-:func:`test_corpus_reads_cleanly`.
+added fields, non-UTF-8 bytes. Configuration files also get YAML's odd scalars (dates, timestamps,
+``!!binary``, ``!!set``, 5000-digit and hexadecimal numbers, tags the safe loader refuses, escapes of control
+characters) as the value, list item or key of every configuration key. Every crash found is kept under
+``corpus/text/`` and replayed by :func:`test_corpus_reads_cleanly`.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from pydantic import BaseModel
 
 from datasets.carmen import match_keyframe_scans, read_carmen
 from datasets.config import InputConfig
@@ -29,9 +32,9 @@ from datasets.kitti import read_kitti
 from datasets.paths import SHARED_DATA_DIR
 from datasets.relations import read_relations
 from datasets.types import Recording
-from pipeline.config import load_config
+from pipeline.config import Config, load_config
 from slam.trajectory_io import read_g2o, read_tum
-from tests.fuzz.properties import CORPUS, reads_cleanly
+from tests.fuzz.properties import CORPUS, YAML_ODD_SCALARS, reads_cleanly
 
 TEXT_CORPUS = CORPUS / "text"
 SHARED_DATA = SHARED_DATA_DIR
@@ -351,6 +354,52 @@ def test_text_file_one_nasty_number_reads_cleanly(fmt: str, line: int, field: in
 def test_config_overrides_read_cleanly(stage: str, key: str, value: object) -> None:
     """Command-line overrides of any value: a ConfigError naming the option, never a traceback."""
     reads_cleanly(lambda: load_config(None, {stage: {key: value}}))
+
+
+def _config_keys(model: type[BaseModel] = Config, prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    """Every leaf key of the configuration (``("mapping", "gppol", "ut", "kappa")``), through sections."""
+    out: list[tuple[str, ...]] = []
+    for name, field in model.model_fields.items():
+        if isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel):
+            out.extend(_config_keys(field.annotation, (*prefix, name)))
+        else:
+            out.append((*prefix, name))
+    return out
+
+
+CONFIG_KEYS = _config_keys()
+
+
+def _config_text(path: tuple[str, ...], value: str, where: str) -> str:
+    """Block YAML setting ``path`` to the raw scalar ``value`` (``where``: as the value, in a two-item list,
+    as the key of the leaf's section, or as the key of the whole file)."""
+    if where == "top-key":
+        return f"? {value}\n: 1\n"
+    lines = [f"{'  ' * depth}{key}:" for depth, key in enumerate(path[:-1])]
+    indent = "  " * (len(path) - 1)
+    if where == "key":
+        lines += [f"{indent}? {value}", f"{indent}: 1"]
+    elif where == "list":
+        lines.append(f"{indent}{path[-1]}: [{value}, 1]")
+    else:
+        lines.append(f"{indent}{path[-1]}: {value}")
+    return "\n".join(lines) + "\n"
+
+
+@given(
+    path=st.sampled_from(CONFIG_KEYS),
+    value=YAML_ODD_SCALARS,
+    where=st.sampled_from(["value", "value", "list", "key", "top-key"]),
+)
+def test_config_yaml_tags_and_implicit_types_read_cleanly(
+    path: tuple[str, ...], value: str, where: str
+) -> None:
+    """Any key of any section set to a date, a timestamp, ``!!binary``, ``!!set``, a 5000-digit number or a
+    tag YAML refuses (or such a scalar as a key): a Config or one ConfigError line, never ValueError."""
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg_path = Path(tmp) / "c.yaml"
+        cfg_path.write_text(_config_text(path, value, where))
+        reads_cleanly(lambda: load_config(cfg_path))
 
 
 _NUMBER = st.one_of(
