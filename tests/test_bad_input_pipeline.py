@@ -253,14 +253,23 @@ def test_remap_without_covariances(damaged, tmp_path, poses) -> None:
     _one_line_error(proc, r"covariances\.npz: no such file or directory")
 
 
-def test_remap_with_non_finite_covariances(damaged, tmp_path) -> None:
+@pytest.mark.parametrize(
+    ("key", "mode"), [("scan_relative_after", "relative"), ("scan_after", "world")], ids=["relative", "world"]
+)
+def test_remap_with_non_finite_covariances(damaged, tmp_path, key: str, mode: str) -> None:
+    """A non-finite entry in the covariances the map is built with (mapping.gppol.pose_covariances of the
+    run's config.yaml) is a one-line error."""
     import numpy as np
 
     path = damaged / "trajectory" / "covariances.npz"
     with np.load(path) as z:
         arrays = dict(z)
-    arrays["scan_after"][3, 0, 0] = np.nan
+    arrays[key][3, 0, 0] = np.nan
     np.savez(path, **arrays)
+    config = damaged / "config.yaml"
+    text = config.read_text()
+    assert "pose_covariances: relative" in text
+    config.write_text(text.replace("pose_covariances: relative", f"pose_covariances: {mode}"))
     proc = _cli("remap", str(damaged), "--out", str(tmp_path / "m"))
     _one_line_error(proc, r"covariances: not every entry is finite")
 
