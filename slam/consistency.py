@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 
 from slam import geometry as se2
 from slam.config import ConsistencyConfig
-from slam.graph import Edge, PoseGraphError
+from slam.graph import Edge, PoseGraphError, edge_errors2
 
 FloatArray = NDArray[np.float64]
 
@@ -57,8 +57,6 @@ FloatArray = NDArray[np.float64]
 def _robust_weights(poses_xytheta: FloatArray, edges: Sequence[Edge]) -> FloatArray:
     """(E,) the weight the robust loss of each edge gives its residual at ``poses_xytheta`` (1 without one):
     iteratively re-weighted least squares, as GTSAM linearises a robust noise model."""
-    from slam.graph import edge_errors2
-
     e = np.sqrt(np.maximum(edge_errors2(poses_xytheta, list(edges)), 0.0))
     kind = np.array([edge.robust for edge in edges])
     c = np.array([edge.robust_width for edge in edges], dtype=np.float64)

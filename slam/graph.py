@@ -9,7 +9,7 @@ Marginals leave this module in GTSAM's body frame; :mod:`slam.geometry` rotates 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
@@ -301,26 +301,16 @@ def gnc_loop_inliers(
     is an inlier while its whitened error stays below the chi-square quantile ``inlier_probability`` (3
     degrees of freedom); loops are given without their robust loss (GNC is the robust loss). Returns
     ``(keep (E,) bool: True for every non-loop edge and the loops GNC weighs >= 0.5, estimate)``."""
-    graph = gtsam.NonlinearFactorGraph()
-    known: list[int] = []
-    for i, e in enumerate(edges):
-        noise = gtsam.noiseModel.Gaussian.Covariance(np.asarray(e.cov, dtype=np.float64))
-        if e.kind == "prior":
-            graph.add(gtsam.PriorFactorPose2(e.key_from, _pose(e.measurement_xytheta), noise))
-        else:
-            graph.add(gtsam.BetweenFactorPose2(e.key_from, e.key_to, _pose(e.measurement_xytheta), noise))
-        if e.kind != "loop":
-            known.append(i)
-    values = gtsam.Values()
-    for k, p in enumerate(np.asarray(initial_xytheta, dtype=np.float64)):
-        values.insert(k, _pose(p))
+    plain = [e if e.robust == "none" else replace(e, robust="none") for e in edges]
+    graph = PoseGraph.from_edges(plain, initial_xytheta)
+    known = [i for i, e in enumerate(edges) if e.kind != "loop"]
     lm = gtsam.LevenbergMarquardtParams()
     lm.setMaxIterations(max_iterations)
     params = gtsam.GncLMParams(lm)
     params.setLossType(gtsam.GncLossType.TLS)
     params.setKnownInliers(known)
     try:
-        gnc = gtsam.GncLMOptimizer(graph, values, params)
+        gnc = gtsam.GncLMOptimizer(graph.graph, graph._estimate, params)
         gnc.setInlierCostThresholdsAtProbability(inlier_probability)
         result = gnc.optimize()
     except RuntimeError as exc:

@@ -275,13 +275,11 @@ class ClosureSearch:
         self.graph.update()
         self.est = np.zeros((k_count, 3))
         self.est[0] = chain.poses_xytheta[0]
-        self.cov_w = np.zeros(
-            (k_count, 3, 3)
-        )  # world-frame marginals (unscaled) when each keyframe was added
+        # world-frame marginals (unscaled) when each keyframe was added
+        self.cov_w = np.zeros((k_count, 3, 3))
         self.cov_w[0] = chain.prior_cov
-        loop_floor = (
-            np.diag([gc.loop_min_sigma_xy_m, gc.loop_min_sigma_xy_m, gc.loop_min_sigma_theta_rad]) ** 2
-        )
+        sigmas = [gc.loop_min_sigma_xy_m, gc.loop_min_sigma_xy_m, gc.loop_min_sigma_theta_rad]
+        loop_floor = np.diag(sigmas) ** 2
         self.closer = LoopCloser(
             odo, chain.scans, cfg.loop_closure, cfg.odometry, gc.loop_cov_scale, mount, loop_floor
         )
@@ -298,9 +296,8 @@ class ClosureSearch:
         width = lc.robust_kernel_width * math.sqrt(max(self.scale, 1.0))
         cov = np.linalg.inv(c.information)
         self.graph.add_between(
-            "loop", c.target_keyframe, c.query_keyframe, c.relative_xytheta, cov, robust=lc.robust_kernel,
-            robust_width=width,
-        )  # fmt: skip
+            "loop", c.target_keyframe, c.query_keyframe, c.relative_xytheta, cov, lc.robust_kernel, width
+        )
 
     def run(self, progress: ProgressLike | None = None) -> None:
         """Every keyframe after the first: add it with its odometry factor, then search closures from it."""
@@ -418,7 +415,7 @@ def robust_batch(initial_xytheta: FloatArray, edges: list[Edge], gc: GraphConfig
     edges = [e for e, k in zip(edges, kept, strict=True) if k]
     scale = 1.0
     inliers = np.ones(len(edges), dtype=bool)
-    final = PoseGraph.from_edges(edges, est)
+    final: PoseGraph | None = None  # variance_factor_iterations >= 1: the loop below always builds it
     for _ in range(gc.variance_factor_iterations if gc.estimate_variance_factor else 1):
         new_scale, inliers = (
             variance_factor(est, edges, scale, gc) if gc.estimate_variance_factor else (1.0, inliers)
@@ -433,6 +430,7 @@ def robust_batch(initial_xytheta: FloatArray, edges: list[Edge], gc: GraphConfig
     loop_kept = kept[is_loop]
     loop_inlier = np.zeros(len(loop_kept), dtype=bool)
     loop_inlier[loop_kept] = inliers[[i for i, e in enumerate(edges) if e.kind == "loop"]]
+    assert final is not None
     return BatchResult(est, final, scale, loop_kept, loop_inlier)
 
 
