@@ -9,10 +9,12 @@ trajectory of the SLAM stage, whose covariances GPPOL then uses, and the output 
 Every seed also splits its test points by the cells the mapped beams observed (a free segment crosses the
 cell or an endpoint lies in it; cells of ``mapping.resolution_m``, the raster's own on the ground-truth
 protocol): ``auc_observed_*`` / ``auc_unobserved_*`` (null where a label is missing) and
-``unobserved_share``, with their means ``auc_observed`` and ``unobserved_share``. The test points and the
-other AUCs are those of the protocol, untouched. Each seed also reports ``log_loss_*`` (the mean negative
-log-likelihood of the test labels, :func:`mapping.metrics.log_loss`): AUC ranks, the log loss also asks
-whether the probabilities are honest.
+``unobserved_share``, with their means ``auc_observed`` and ``unobserved_share``; the labels of the unobserved
+test points (``unobserved_occupied_test_points`` / ``unobserved_free_test_points``) and the share of them each
+map classifies against their label (``wrong_unobserved_*``: confidently wrong where no beam was). The test
+points and the other AUCs are those of the protocol, untouched. Each seed also reports ``log_loss_*`` (the
+mean negative log-likelihood of the test labels, :func:`mapping.metrics.log_loss`): AUC ranks, the log loss
+also asks whether the probabilities are honest.
 
 Input uncertainty given to GPPOL:
 
@@ -161,12 +163,22 @@ def observed_split(
     }
 
 
-def _split_aucs(p: np.ndarray, labels: np.ndarray, observed: np.ndarray, name: str) -> dict[str, Any]:
+def _split_aucs(
+    p: np.ndarray, labels: np.ndarray, observed: np.ndarray, name: str, cfg: MappingConfig
+) -> dict[str, Any]:
     """``auc_observed_NAME`` and ``auc_unobserved_NAME``: AUC of the (P,) scores ``p`` over the test points
-    in observed / unobserved cells (None where one label is missing there)."""
+    in observed / unobserved cells (None where one label is missing there); ``wrong_unobserved_NAME``: the
+    share of the unobserved ones the map classifies against their label (occupied at p >=
+    ``cfg.occupied_threshold`` though free, free at p <= ``cfg.free_threshold`` though occupied): how often
+    the map is confidently wrong where no beam was (None without unobserved points). An AUC over a handful
+    of one label says little: the row's ``unobserved_occupied_test_points`` / ``unobserved_free_test_points``
+    give its sample."""
+    pu, lu = p[~observed], labels[~observed].astype(bool)
+    wrong = np.sum(np.where(lu, pu <= cfg.free_threshold, pu >= cfg.occupied_threshold))
     return {
         f"auc_observed_{name}": _auc_or_none(p[observed], labels[observed]),
-        f"auc_unobserved_{name}": _auc_or_none(p[~observed], labels[~observed]),
+        f"auc_unobserved_{name}": _auc_or_none(pu, lu),
+        f"wrong_unobserved_{name}": float(wrong / lu.size) if lu.size else None,
     }
 
 
@@ -197,7 +209,7 @@ def _map_and_score(
         row[f"auc_{mapper}"] = roc_auc(p, labels)
         row[f"log_loss_{mapper}"] = log_loss(p, labels)
         if observed is not None:
-            split.update(_split_aucs(p, labels, observed, mapper))
+            split.update(_split_aucs(p, labels, observed, mapper, cfg))
         row[f"{mapper}_train_s"] = t1 - t0
         row[f"{mapper}_map_and_query_s"] = t2 - t1
         row[f"{mapper}_hyperparameters"] = {"kernel": params.kernel.name, **params.kernel.as_dict()}
@@ -208,7 +220,10 @@ def _map_and_score(
     row["log_loss_grid"] = log_loss(p_grid, labels)
     row["grid_s"] = time.perf_counter() - t0
     if observed is not None:
-        split.update(_split_aucs(p_grid, labels, observed, "grid"))
+        split.update(_split_aucs(p_grid, labels, observed, "grid", cfg))
+        unobserved = labels[~observed].astype(bool)
+        split["unobserved_occupied_test_points"] = int(unobserved.sum())
+        split["unobserved_free_test_points"] = int(unobserved.size - unobserved.sum())
     row.update(split)
     return row
 

@@ -181,10 +181,19 @@ def test_intel_holdout_split_by_observed_cells(intel_seed0) -> None:
     p_gp = MapBuilder.from_config(cfg, "gpfol").gp_map(beams, params).query(pts, sort=True).probability
     assert row["auc_gpfol"] == pytest.approx(roc_auc(p_gp, labels), abs=1e-9)
     assert row["auc_observed_gpfol"] == pytest.approx(roc_auc(p_gp[observed], labels[observed]), abs=1e-9)
+    unobserved_labels = labels[~observed].astype(bool)
+    assert row["unobserved_occupied_test_points"] == unobserved_labels.sum()
+    assert row["unobserved_free_test_points"] == (~unobserved_labels).sum()
+    p_unobserved = p_grid[~observed]
+    wrong = np.where(
+        unobserved_labels, p_unobserved <= cfg.free_threshold, p_unobserved >= cfg.occupied_threshold
+    )
+    assert row["wrong_unobserved_grid"] == pytest.approx(wrong.mean(), abs=1e-12)
     for mapper in ("gppol", "gpfol", "grid"):
         assert 0.5 < row[f"auc_observed_{mapper}"] <= 1
         # unobserved cells are where the maps know least
         assert row[f"auc_observed_{mapper}"] > row[f"auc_unobserved_{mapper}"]
+        assert 0 <= row[f"wrong_unobserved_{mapper}"] < 0.5
 
 
 def test_ground_truth_protocol_splits_the_raster_cells(tmp_path) -> None:
