@@ -20,10 +20,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapping.beams import Beams
-from mapping.core import InputGaussians, LocalGP, predict_batch
+from mapping.core import INPUTS_GIRARD, InputGaussians, LocalGP, predict_batch
 from mapping.exports import MapLayers
 from mapping.gppol import GaussianInputs
 from mapping.neighbours import BeamIndex
+from mapping.reach import (
+    ReachMask,
+    kernel_reach_m,
+    largest_eigenvalue,
+    reach_mask,
+    se_girard_reach_m,
+    spread_factor,
+)
 from mapping.train import GPParams
 
 FloatArray = NDArray[np.float64]
@@ -126,6 +134,9 @@ class GPOccupancyMap:
             )
         self.index_seconds = time.perf_counter() - t0
         self.last_render_seconds = 0.0
+        self._reach: ReachMask | None = None
+        self._reach_done = False
+        self.last_query_stats: dict[str, float] = {}
 
     @property
     def mapper(self) -> str:
@@ -140,10 +151,81 @@ class GPOccupancyMap:
         hi = pts.max(axis=0) + margin_m
         return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
 
+    def reach(self) -> ReachMask | None:
+        """Where a training input can inform a prediction (:mod:`mapping.reach`), computed on first use;
+        None for a kernel that does not decay (the neural-network kernel), whose every query is solved."""
+        if not self._reach_done:
+            self._reach = self._reach_mask()
+            self._reach_done = True
+        return self._reach
+
+    def _reach_mask(self) -> ReachMask | None:
+        r0 = kernel_reach_m(self.params.kernel)
+        if r0 is None or len(self.beams) == 0:
+            return None
+        idx = self.index
+        if self.inputs is None:  # exact inputs: the endpoints and the free segments as indexed
+            starts = np.concatenate([idx.hit_xy, idx.seg[:, :2]])
+            ends = np.concatenate([idx.hit_xy, idx.seg[:, :2] + idx.seg[:, 2:4]])
+            reach = np.full(starts.shape[0], r0)
+        else:  # Gaussian inputs at their UT means, each reaching further by its spread
+            occ, seg = self._inputs.occ_moments, self._inputs.seg_moments
+            free_len = seg[:, 13]
+            # the largest eigenvalue of Sigma(d) = C0 + d C1 + d^2 C2 on [0, L] is at most its trace's
+            # largest value there (a quadratic in d: at an end or at its vertex)
+            t0, t1, t2 = (seg[:, k] + seg[:, k + 2] for k in (4, 7, 10))
+            ends_tr = np.maximum(t0, t0 + free_len * (t1 + free_len * t2))
+            vertex = np.clip(np.divide(-t1, 2.0 * t2, out=np.zeros_like(t1), where=t2 != 0), 0, free_len)
+            seg_var = np.maximum(ends_tr, t0 + vertex * (t1 + vertex * t2))
+            starts = np.concatenate([occ[:, :2], seg[:, :2]])
+            ends = np.concatenate([occ[:, :2], seg[:, :2] + free_len[:, None] * seg[:, 2:4]])
+            lam = np.concatenate([largest_eigenvalue(occ[:, 2:5]), np.maximum(seg_var, 0.0)])
+            if self._inputs.mode == INPUTS_GIRARD:
+                reach = se_girard_reach_m(self.params.kernel.as_dict()["length_scale"], lam)
+            else:
+                c = spread_factor(float(np.max(np.linalg.norm(self._inputs.nodes, axis=1))))
+                reach = r0 + c * np.sqrt(lam)
+        return reach_mask(starts, ends, reach)
+
     def query(self, points_xy_m: FloatArray, sort: bool = True) -> Prediction:
         """Mean, variance and p(occ) at (Q, 2) points. ``sort`` processes them in index-cell order (faster
-        for scattered points; results come back in the input order)."""
+        for scattered points; results come back in the input order). Points beyond every training input's
+        reach (:meth:`reach`) get the prior (mean 0, the prior variance, the unseen probability) unsolved."""
         pts = np.ascontiguousarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+        t0 = time.perf_counter()
+        mask = self.reach()
+        near = mask.contains(pts) if mask is not None else None
+        if near is None or near.all():
+            t1 = time.perf_counter()
+            out = self._solve(pts, sort)
+            self._note_query(pts.shape[0], t1 - t0, pts.shape[0], time.perf_counter() - t1)
+            return out
+        p = self.params
+        mean = np.zeros(pts.shape[0])
+        var = np.full(pts.shape[0], p.prior_variance)
+        prob = np.full(pts.shape[0], p.unseen_probability)
+        t1 = time.perf_counter()
+        n_near = int(near.sum())
+        if n_near:
+            solved = self._solve(np.ascontiguousarray(pts[near]), sort)
+            mean[near], var[near], prob[near] = solved.mean, solved.variance, solved.probability
+        self._note_query(pts.shape[0], t1 - t0, n_near, time.perf_counter() - t1)
+        return Prediction(mean, var, prob)
+
+    def _note_query(self, n: int, prior_s: float, n_solved: int, solved_s: float) -> None:
+        """``last_query_stats``: the points of the last query, those solved and the seconds each part took
+        (``prior_s``: the reach test and the prior's fill, which includes building the reach raster on the
+        first query)."""
+        self.last_query_stats = {
+            "points": n,
+            "solved": n_solved,
+            "prior": n - n_solved,
+            "solved_s": solved_s,
+            "prior_s": prior_s,
+        }
+
+    def _solve(self, pts: FloatArray, sort: bool) -> Prediction:
+        """The local GPs at (Q, 2) contiguous points (:meth:`query` without the reach test)."""
         order = None
         if sort and pts.shape[0] > 1:
             idx = self.index.segment_index

@@ -93,6 +93,7 @@ def build_maps(
     bounds: Bounds | None = None,
     selected: np.ndarray | None = None,
     renderer: TileRenderer = render_serial,
+    render_stats: dict[str, dict[str, float]] | None = None,
 ) -> tuple[dict[str, MapLayers], dict[str, IncrementalMap], GPParams, Bounds]:
     """GP maps for each named trajectory ``{name: (base poses (N,3), covariances (N,3,3) | None)}``.
 
@@ -102,7 +103,9 @@ def build_maps(
     default the union of the data bounds grown to the world lattice of cells, :func:`snap_to_lattice`),
     tile by tile (:mod:`pipeline.scale`) with the engine ``renderer``.
     Returns the layers, the tiled maps (:class:`mapping.tiling.IncrementalMap`, ready for incremental
-    updates), the parameters and the bounds.
+    updates), the parameters and the bounds. ``render_stats``, when given, receives per map rendered whole
+    the cells solved and those answered with the prior beyond the kernel's reach, with their seconds
+    (:attr:`mapping.gpmap.GPOccupancyMap.last_query_stats`).
     """
     cfg = config.mapping
     builder = MapBuilder.from_config(cfg)
@@ -130,8 +133,11 @@ def build_maps(
                 # instead of one per tile) and gives the same map (bit for bit here; to a float32 ulp on
                 # some CPUs: tests/layer_checks.py); the tiled map adopts it, ready for incremental updates.
                 with progress.stage(f"map {name}", total=1) as bar:
-                    whole = builder.gp_map(beams[name], params, cov).render(bounds, cfg.resolution_m)
+                    gp = builder.gp_map(beams[name], params, cov)
+                    whole = gp.render(bounds, cfg.resolution_m)
                     bar.advance()
+                if render_stats is not None:
+                    render_stats[name] = dict(gp.last_query_stats)
                 maps[name] = builder.tiled_map(
                     beams[name], params, bounds, config.scale.tile_cells, cov, renderer, layers=whole
                 )
@@ -212,9 +218,17 @@ def run_pipeline(
         trajectories = {
             which: (stored[which][1], mapper_covariances(slam, which, mode)) for which in ("before", "after")
         }
+        render_stats: dict[str, dict[str, float]] = {}
         with stage_boundary("mapping", input_path), tile_engine(config.scale) as renderer:
             layers, maps, params, bounds = build_maps(
-                rec.scans, rec.laser_in_base_xytheta, trajectories, config, timer, progress, renderer=renderer
+                rec.scans,
+                rec.laser_in_base_xytheta,
+                trajectories,
+                config,
+                timer,
+                progress,
+                renderer=renderer,
+                render_stats=render_stats,
             )
         (stage / "maps").mkdir()
         params.save(params_path(stage / "maps"))
@@ -241,6 +255,7 @@ def run_pipeline(
             input_path, rec, slam, config, layers["after"], bounds, params, metrics, timer, shares
         )
         summary["tiles"] = tiles_summary(maps, config)
+        summary["map"]["render"] = render_stats
         if config.export.png:
             write_report(stage, summary)
         write_summary(stage, summary)

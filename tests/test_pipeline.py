@@ -357,6 +357,28 @@ def test_run_summary_reports_its_tiles(loop_run) -> None:
     assert tiles["rendering"] == "whole map" and tiles["support_beams_mean"] is None
 
 
+def test_run_summary_reports_the_cells_solved_and_those_beyond_reach(loop_run) -> None:
+    """GPPOL's SE kernel decays: each map's cells are either solved or answered with the prior beyond
+    every input's reach (mapping.reach); the layers there read exactly the prior."""
+    from mapping.exports import read_layers_npz
+    from mapping.train import GPParams
+    from pipeline.bench.big_building import render_rates
+
+    summary = json.loads((loop_run / "summary.json").read_text())
+    h, w = summary["map"]["shape_hw"]
+    render = summary["map"]["render"]
+    assert set(render) == {"before", "after"}
+    for name, stats in render.items():
+        assert stats["points"] == h * w == stats["solved"] + stats["prior"]
+        assert stats["solved"] > 0 and stats["solved_s"] > 0 and stats["prior_s"] >= 0
+        rates = render_rates(stats)
+        assert rates["cells_solved"] == stats["solved"] and rates["solved_cells_per_s"] > 0
+        layers = read_layers_npz(loop_run / "maps" / name / "layers.npz")
+        prior = GPParams.from_dict(summary["params"]).prior_variance
+        at_prior = np.sum(layers.variance == np.float32(prior))
+        assert at_prior >= stats["prior"]
+
+
 @pytest.mark.slow
 def test_remap_after_a_local_correction_recomputes_only_the_tiles_it_reaches(loop_run, tmp_path) -> None:
     """A loop-closure-like correction of part of the trajectory: the incremental remap (on a local Dask

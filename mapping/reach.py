@@ -1,0 +1,190 @@
+"""Where the training data can inform a GP map: a raster of the places within a stationary kernel's reach.
+
+A local GP (paper section 3.5) with a kernel that decays with distance predicts the prior at a query whose
+training inputs all lie far away: the mean (eq. 2) is ``k*^T (K + sigma_n^2 I)^-1 y`` and every entry of
+``k*`` vanishes, the variance (eq. 3) is ``k(x*, x*)``. Most cells of a large building's bounding box are
+such places (outside the walls, beyond the courtyards), yet finding their neighbours walks many empty
+index cells. :class:`ReachMask` marks the places some training input can reach; the map answers the
+others with the prior at once (:meth:`mapping.gpmap.GPOccupancyMap.query`), so a map's cost follows its
+data, not its bounding box.
+
+The reach of an input is where its kernel falls below :data:`REACH_TOLERANCE` of the signal variance:
+``r0`` for an exact input (``k(r0) = tol k(0)``) plus ``c sqrt(lambda)`` for a Gaussian input whose
+covariance's largest eigenvalue is at most ``lambda`` (GPPOL, eq. 17-19). For the SE kernel's closed form
+the expected kernel is at most ``l / sqrt(l^2 + lambda) exp(-d^2 / (2 (l^2 + lambda)))`` of ``k(0)``, which
+is what the map uses (:func:`se_girard_reach_m`: an input spread over metres reaches little); a quadrature
+rule puts its nodes at most ``|z|max sqrt(lambda)`` from the mean: ``c`` is that (:func:`spread_factor`).
+The neural-network kernel (eq. 7) does not decay: its maps keep every cell (no mask).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from mapping.kernels import Kernel
+
+FloatArray = NDArray[np.float64]
+
+#: k(d) / k(0) beyond an input's reach. The local GP keeps only the nearest inputs, so the places beyond
+#: every reach read the prior to about float32's resolution: on the fr-clinic map (GPPOL, after closure,
+#: 42 % of its 15 M cells beyond reach) the largest change of p(occ) at any cell is 2.3e-6, and no
+#: variance changes.
+REACH_TOLERANCE = 1e-4
+#: Reaches are grouped into classes whose largest reach is at most this factor above their smallest
+#: (one distance transform each) ...
+REACH_CLASS_RATIO = 1.2
+#: ... and at most this many classes (the ratio grows where the reaches span more).
+REACH_CLASSES = 16
+
+
+def kernel_reach_m(kernel: Kernel, tolerance: float = REACH_TOLERANCE) -> float | None:
+    """``r0``: the distance beyond which the stationary ``kernel`` is below ``tolerance`` of ``k(0)``
+    (bisection on :meth:`~mapping.kernels.Kernel.of_difference`); None for a kernel that is not stationary
+    (it need not decay)."""
+    if not kernel.stationary:
+        return None
+    k0 = float(kernel.of_difference(np.zeros((1, 2)))[0])
+
+    def above(r: float) -> bool:
+        return float(kernel.of_difference(np.array([[r, 0.0]]))[0]) > tolerance * k0
+
+    hi = 1.0
+    while above(hi):
+        hi *= 2.0
+    lo = 0.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if above(mid) else (lo, mid)
+    return hi
+
+
+def spread_factor(max_node_norm: float) -> float:
+    """``c``: under a quadrature rule whose largest standard node has norm ``max_node_norm``, an input of
+    largest covariance eigenvalue ``lambda`` reaches ``c sqrt(lambda)`` further than an exact one."""
+    return float(max_node_norm)
+
+
+def se_girard_reach_m(
+    length_scale_m: float, largest_var_m2: FloatArray, tolerance: float = REACH_TOLERANCE
+) -> FloatArray:
+    """(...,) reaches of Gaussian inputs under the SE kernel integrated in closed form (eq. 19): the
+    expected kernel ``sigma_f^2 l^2 / sqrt(det(l^2 I + Sigma)) exp(-d^T (l^2 I + Sigma)^-1 d / 2)`` is at
+    most ``A exp(-d^2 / (2 u))`` with ``u = l^2 + lambda``, ``A = l / sqrt(u)`` (``lambda`` >= the largest
+    eigenvalue of ``Sigma``, ``largest_var_m2``), below ``tolerance`` beyond ``sqrt(2 u ln(A / tol))``
+    (0 where ``A`` <= tol: so spread an input that it never matters). The reach grows with ``lambda``
+    (for ``u`` below ``l^2 / (e tol^2)``), so an upper bound of the eigenvalue gives a safe reach."""
+    u = float(length_scale_m) ** 2 + np.maximum(np.asarray(largest_var_m2, dtype=np.float64), 0.0)
+    log_ratio = np.log(float(length_scale_m) / (np.sqrt(u) * tolerance))
+    return np.sqrt(2.0 * u * np.maximum(log_ratio, 0.0))
+
+
+def largest_eigenvalue(packed_cov: FloatArray) -> FloatArray:
+    """(...,) largest eigenvalues of (..., 3) packed symmetric 2x2 matrices ``(xx, xy, yy)`` (>= 0)."""
+    p = np.asarray(packed_cov, dtype=np.float64)
+    half = 0.5 * (p[..., 0] + p[..., 2])
+    rad = np.hypot(0.5 * (p[..., 0] - p[..., 2]), p[..., 1])
+    return np.maximum(half + rad, 0.0)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _mark(starts, ends, cls, x0, y0, cell, nx, ny, out):
+    """Mark in ``out[cls[i]]`` (C, ny, nx) the cells of the points sampled every half cell along each segment
+    ``starts[i] -> ends[i]`` (a point where both are equal)."""
+    step = 0.5 * cell
+    for i in range(starts.shape[0]):
+        ax, ay = starts[i, 0], starts[i, 1]
+        dx, dy = ends[i, 0] - ax, ends[i, 1] - ay
+        n = math.ceil(math.sqrt(dx * dx + dy * dy) / step) + 1
+        for s in range(n + 1):
+            t = s / n if n > 0 else 0.0
+            ix = math.floor((ax + t * dx - x0) / cell)
+            iy = math.floor((ay + t * dy - y0) / cell)
+            if 0 <= ix < nx and 0 <= iy < ny:
+                out[cls[i], iy, ix] = True
+
+
+@dataclass(frozen=True)
+class ReachMask:
+    """``near`` (H, W) bool on a raster of ``cell_m`` whose lower-left corner is ``origin_xy_m``: True where
+    some training input may reach (conservatively: every place within reach is True, a few beyond may be).
+    Everything outside the raster is beyond reach."""
+
+    near: NDArray[np.bool_]
+    origin_xy_m: tuple[float, float]
+    cell_m: float
+
+    def contains(self, points_xy_m: FloatArray) -> NDArray[np.bool_]:
+        """(P,) bool: which of the (P, 2) points lie within some input's reach."""
+        pts = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+        ij = np.floor((pts - np.asarray(self.origin_xy_m)) / self.cell_m)
+        h, w = self.near.shape
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        out = np.zeros(pts.shape[0], dtype=bool)
+        idx = ij[inside].astype(np.int64)
+        out[inside] = self.near[idx[:, 1], idx[:, 0]]
+        return out
+
+    @property
+    def share(self) -> float:
+        """The share of the raster's cells within reach."""
+        return float(self.near.mean()) if self.near.size else 0.0
+
+
+def reach_mask(
+    starts_xy_m: FloatArray,
+    ends_xy_m: FloatArray,
+    reach_m: FloatArray,
+    cell_m: float | None = None,
+    classes: int = REACH_CLASSES,
+    class_ratio: float = REACH_CLASS_RATIO,
+) -> ReachMask:
+    """The :class:`ReachMask` of training inputs lying on the (S, 2) -> (S, 2) segments ``starts_xy_m`` ->
+    ``ends_xy_m`` (a point input: start = end), each reaching ``reach_m`` (S,) metres.
+
+    The segments are marked on a raster of ``cell_m`` (default a quarter of the 10th percentile of the
+    reaches; inputs of reach 0 are left out), grouped by
+    reach into geometric classes (each class's reaches within ``class_ratio``, at most ``classes`` of them),
+    one Euclidean distance transform per class. A place
+    is near where its cell lies within its class's largest reach plus ``cell_m (sqrt 2 + 1/4)`` of a marked
+    cell: half a diagonal for the query inside its cell, half for the input inside its cell, a quarter cell
+    for the sampling along the segment."""
+    starts = np.ascontiguousarray(starts_xy_m, dtype=np.float64).reshape(-1, 2)
+    ends = np.ascontiguousarray(ends_xy_m, dtype=np.float64).reshape(-1, 2)
+    reach = np.asarray(reach_m, dtype=np.float64).reshape(-1)
+    if not (starts.shape == ends.shape and reach.shape[0] == starts.shape[0]):
+        raise ValueError(f"segments {starts.shape} -> {ends.shape} with {reach.shape[0]} reaches")
+    if not (np.all(np.isfinite(starts)) and np.all(np.isfinite(ends)) and np.all(np.isfinite(reach))):
+        raise ValueError("reach_mask needs finite segments and reaches")
+    reaching = reach > 0  # an input of reach 0 never matters
+    starts, ends, reach = starts[reaching], ends[reaching], reach[reaching]
+    if starts.shape[0] == 0:
+        return ReachMask(np.zeros((0, 0), dtype=bool), (0.0, 0.0), 1.0)
+    cell = float(cell_m) if cell_m is not None else float(np.clip(np.quantile(reach, 0.1) / 4.0, 0.05, 2.0))
+    margin = cell * (math.sqrt(2.0) + 0.25)
+    grow = float(reach.max()) + margin + cell
+    lo = np.minimum(starts.min(axis=0), ends.min(axis=0)) - grow
+    hi = np.maximum(starts.max(axis=0), ends.max(axis=0)) + grow
+    nx, ny = (int(v) for v in np.ceil((hi - lo) / cell))
+    r_lo, r_hi = float(reach.min()), float(reach.max())
+    n_edges = 0
+    if r_hi > r_lo * class_ratio:
+        n_edges = min(max(1, classes) - 1, math.ceil(math.log(r_hi / r_lo) / math.log(class_ratio)) - 1)
+    edges = r_lo * (r_hi / r_lo) ** (np.arange(1, n_edges + 1) / (n_edges + 1)) if n_edges else np.zeros(0)
+    cls = np.searchsorted(edges, reach, side="left").astype(np.int64)  # reach <= edges[c] -> class c
+    n_cls = edges.size + 1
+    marked = np.zeros((n_cls, ny, nx), dtype=np.bool_)
+    _mark(starts, ends, cls, float(lo[0]), float(lo[1]), cell, nx, ny, marked)
+    near = np.zeros((ny, nx), dtype=bool)
+    for c in range(n_cls):
+        members = cls == c
+        if not (members.any() and marked[c].any()):
+            continue
+        dist_m = ndimage.distance_transform_edt(~marked[c]) * cell
+        near |= dist_m <= float(reach[members].max()) + margin
+    return ReachMask(near, (float(lo[0]), float(lo[1])), cell)

@@ -1,0 +1,164 @@
+"""The kernel's reach (:mod:`mapping.reach`): a map answers the places no input reaches with the prior,
+unsolved, and the map is the same as when every place is solved."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from datasets.registry import open_dataset
+from mapping.config import MappingConfig
+from mapping.gpmap import GPOccupancyMap
+from mapping.gppol import GaussianInputs, SensorNoise, input_moments
+from mapping.kernels import make_kernel
+from mapping.noisy_kernels import GAUSS_HERMITE, GIRARD, InputExpectation
+from mapping.reach import (
+    REACH_TOLERANCE,
+    kernel_reach_m,
+    largest_eigenvalue,
+    reach_mask,
+    se_girard_reach_m,
+    spread_factor,
+)
+from mapping.train import GPParams
+from pipeline import evaluate_map as em
+from tests.conftest import data_file
+
+
+def test_kernel_reach_of_the_se_kernel_is_its_closed_form_and_matern_falls_to_the_tolerance() -> None:
+    se = make_kernel("se", {"sigma_f": 0.9, "length_scale": 0.3})
+    assert kernel_reach_m(se) == pytest.approx(0.3 * math.sqrt(2 * math.log(1 / REACH_TOLERANCE)), rel=1e-9)
+    for name in ("matern32", "matern52"):
+        k = make_kernel(name, {"sigma_f": 0.9, "length_scale": 0.5})
+        r0 = kernel_reach_m(k)
+        k0 = k.of_difference(np.zeros((1, 2)))[0]
+        assert k.of_difference(np.array([[r0, 0.0]]))[0] == pytest.approx(REACH_TOLERANCE * k0, rel=1e-6)
+        assert k.of_difference(np.array([[0.9 * r0, 0.0]]))[0] > REACH_TOLERANCE * k0
+    # the neural-network kernel (eq. 7) does not decay: no reach
+    assert kernel_reach_m(make_kernel("nn", (0.9, 3.0, 4.0))) is None
+    assert spread_factor(3.5) == 3.5
+
+
+def test_se_girard_reach_bounds_the_expected_kernel() -> None:
+    """Beyond the reach the closed-form expected SE kernel (eq. 19) between an exact query and a Gaussian
+    input is below the tolerance for every covariance of that largest eigenvalue; just inside it is not,
+    for a covariance flat across the offset. An input spread far wider than the length scale reaches
+    nowhere."""
+    from mapping.noisy_kernels import girard_se
+
+    ell = 0.3
+    se = make_kernel("se", {"sigma_f": 1.0, "length_scale": ell})
+    assert se_girard_reach_m(ell, 0.0) == pytest.approx(kernel_reach_m(se), rel=1e-9)
+    for lam in (0.0, 0.01, 0.3, 4.0):
+        r = float(se_girard_reach_m(ell, lam))
+        for ratio in (1.0, 0.3, 0.0):  # the other eigenvalue
+            cov = np.diag([lam, ratio * lam])
+            for angle in np.linspace(0, np.pi, 7):
+                d = np.array([np.cos(angle), np.sin(angle)])
+                beyond = girard_se(se, d * r * 1.0001, cov)
+                assert beyond <= REACH_TOLERANCE * (1 + 1e-9)
+        # tight: a covariance flat across the offset attains the bound
+        assert girard_se(se, np.array([0.98 * r, 0.0]), np.diag([lam, 0.0])) > REACH_TOLERANCE
+    assert se_girard_reach_m(ell, (ell / REACH_TOLERANCE) ** 2) == 0.0
+
+
+def test_largest_eigenvalue_of_packed_covariances() -> None:
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(200, 2, 2))
+    cov = a @ np.swapaxes(a, 1, 2)
+    packed = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]], axis=1)
+    np.testing.assert_allclose(largest_eigenvalue(packed), np.linalg.eigvalsh(cov)[:, -1], rtol=1e-12)
+
+
+def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(P, S) distances of (P, 2) points to the (S, 2) -> (S, 2) segments."""
+    d = b - a
+    l2 = np.maximum(np.einsum("ij,ij->i", d, d), 1e-300)
+    t = np.clip(np.einsum("pij,ij->pi", p[:, None, :] - a[None], d) / l2, 0.0, 1.0)
+    nearest = a[None] + t[..., None] * d[None]
+    return np.linalg.norm(p[:, None, :] - nearest, axis=2)
+
+
+def test_reach_mask_keeps_every_place_within_reach_and_drops_the_far_ones() -> None:
+    """Random segments and points of mixed reaches: every query within some input's reach is near (never
+    wrongly unsolved); queries beyond every reach by more than the raster's margin are far."""
+    rng = np.random.default_rng(1)
+    starts = rng.uniform(0, 40, (300, 2))
+    ends = starts + rng.normal(0, 4, (300, 2))
+    ends[:100] = starts[:100]  # point inputs (endpoints)
+    reach = rng.choice([0.8, 1.5, 3.0], 300) * rng.uniform(0.9, 1.1, 300)
+    mask = reach_mask(starts, ends, reach)
+    q = rng.uniform(-10, 55, (20000, 2))
+    near = mask.contains(q)
+    excess = _segment_distance(q, starts, ends) - reach[None]  # < 0: within that input's reach
+    within = (excess <= 0).any(axis=1)
+    assert within.sum() > 1000
+    assert near[within].all()
+    # three reach levels, a class each: beyond every reach by the raster's margin (and a cell) is far
+    reach = rng.choice([0.8, 1.5, 3.0], 300)
+    mask = reach_mask(starts, ends, reach)
+    near = mask.contains(q)
+    excess = _segment_distance(q, starts, ends) - reach[None]
+    assert near[(excess <= 0).any(axis=1)].all()
+    margin = mask.cell_m * (math.sqrt(2) + 0.25)
+    beyond = (excess > 2 * margin + mask.cell_m).all(axis=1)
+    assert beyond.sum() > 1000 and not near[beyond].any()
+    assert not mask.contains(np.array([[1e4, 1e4]]))[0]  # off the raster: beyond reach
+    with pytest.raises(ValueError, match="finite"):
+        reach_mask(starts, ends, np.full(300, np.nan))
+
+
+@pytest.fixture(scope="module")
+def intel_beams():
+    path = data_file("intel/intel.gfs.log")
+    rec = open_dataset(path)
+    base = em.reference_base_poses(rec, path)
+    beams = em.make_beams(rec, base, np.arange(0, 400, 4), MappingConfig())
+    cov = np.tile(np.diag([0.08**2, 0.05**2, 0.02**2]), (len(rec.scans), 1, 1))
+    cov[::7] *= 9.0  # some scans far less certain: their inputs reach further
+    return beams, cov
+
+
+@pytest.mark.parametrize(
+    ("kernel", "values", "method", "level", "gaussian"),
+    [
+        ("se", (0.9, 0.3), GIRARD, 1, True),
+        ("matern32", (0.9, 0.4), GAUSS_HERMITE, 3, True),
+        ("se", (0.9, 0.3), GIRARD, 1, False),
+    ],
+)
+def test_map_with_reach_equals_the_map_solved_everywhere(
+    intel_beams, kernel, values, method, level, gaussian
+):
+    """The Intel lab's beams (GPPOL with pose covariances, and exact inputs): a grid around the data,
+    queried with the reach test and with every point solved, agrees to 1e-5 (terms below 1e-4 of k(0) are
+    what the test drops, and the nearest inputs carry the prediction), while a large
+    share of the grid is answered with the prior unsolved."""
+    beams, cov = intel_beams
+    params = GPParams(make_kernel(kernel, values), 0.05, 6.0, -0.4)
+    inputs = None
+    if gaussian:
+        moments = input_moments(beams, cov, [SensorNoise(0.01, 1e-4)])
+        laser = input_moments(beams, None, [SensorNoise(0.01, 1e-4)])
+        inputs = GaussianInputs(moments, InputExpectation(method, level), local_moments=laser)
+    with_reach = GPOccupancyMap(beams, params, 15, 15, inputs=inputs)
+    solved = GPOccupancyMap(beams, params, 15, 15, inputs=inputs)
+    solved._reach, solved._reach_done = None, True  # every query solved
+    x0, y0, x1, y1 = with_reach.bounds_xy_m(margin_m=25.0)
+    gx, gy = np.meshgrid(np.arange(x0, x1, 0.21), np.arange(y0, y1, 0.21))
+    q = np.column_stack([gx.ravel(), gy.ravel()])
+    far = ~with_reach.reach().contains(q)
+    assert 0.2 < far.mean() < 0.95
+    a, b = with_reach.query(q), solved.query(q)
+    for name in ("mean", "variance", "probability"):
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-5)
+    assert np.all(a.mean[far] == 0.0) and np.all(a.variance[far] == params.prior_variance)
+    assert np.all(a.probability[far] == params.unseen_probability)
+
+
+def test_the_nn_kernel_solves_every_query(intel_beams) -> None:
+    beams, _ = intel_beams
+    gp = GPOccupancyMap(beams, GPParams(make_kernel("nn", (0.9, 3.0, 4.0)), 0.05, 6.0, -0.4), 15, 15)
+    assert gp.reach() is None
