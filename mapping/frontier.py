@@ -405,6 +405,10 @@ def visible_cells(
     return seen_by > 0
 
 
+#: Candidates whose gain bounds are recomputed together in a round of the lazy greedy choice.
+LAZY_BATCH = 16
+
+
 def plan_exploration(
     layers: MapLayers, params: GPParams, settings: ExplorationSettings | None = None
 ) -> ExplorationPlan:
@@ -424,18 +428,34 @@ def plan_exploration(
     first = np.zeros(candidates.shape[0])
     chosen: list[int] = []
     view_gains: list[float] = []
+    # Lazy greedy (Minoux): a view's gain only shrinks as earlier views lower the variance (v^2 / (v + s^2)
+    # grows with v), so the gains of the last round bound this round's. Recomputing the best bounds until
+    # the first of the maxima is fresh picks exactly what recomputing every candidate would, ties included.
+    bound = np.zeros(candidates.shape[0])
+    fresh = np.zeros(candidates.shape[0], dtype=bool)
     for k in range(min(s.n_views, candidates.shape[0])):
-        gains, _ = _scan(
-            candidates, layers, knowledge.occupied, variance_reduction_per_cell(current, noise), s.laser
-        )
+        cell_gain = variance_reduction_per_cell(current, noise)
         if k == 0:
-            first = gains
-        gains[chosen] = -np.inf
-        best = int(np.argmax(gains))
-        if not gains[best] > 0:
+            first, _ = _scan(candidates, layers, knowledge.occupied, cell_gain, s.laser)
+            bound = first.copy()
+            fresh[:] = True
+        else:
+            fresh[:] = False
+            fresh[chosen] = True
+            while True:
+                best = int(np.argmax(bound))
+                if fresh[best]:
+                    break
+                stale = np.flatnonzero(~fresh)
+                batch = stale[np.argsort(-bound[stale], kind="stable")[:LAZY_BATCH]]
+                bound[batch], _ = _scan(candidates[batch], layers, knowledge.occupied, cell_gain, s.laser)
+                fresh[batch] = True
+        best = int(np.argmax(bound))
+        if not bound[best] > 0:
             break
         chosen.append(best)
-        view_gains.append(float(gains[best]))
+        view_gains.append(float(bound[best]))
+        bound[best] = -np.inf  # chosen: never again
         seen = visible_cells(candidates[best], layers, knowledge.occupied, s.laser)
         current[seen] = current[seen] * noise / (current[seen] + noise)
     return ExplorationPlan(
