@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import signal
 import sys
 import threading
@@ -66,6 +67,43 @@ def _add_rerun(p: argparse.ArgumentParser) -> None:
         metavar="FILE.rrd",
         help="also write a Rerun recording of the finished run folder to FILE.rrd (open it: rerun FILE.rrd)",
     )
+
+
+def _add_results(p: argparse.ArgumentParser, what: str) -> None:
+    """``--markdown FILE`` and ``--from-json FILE`` of ``evaluate suite`` and ``bench``."""
+    p.add_argument(
+        "--markdown",
+        type=Path,
+        metavar="FILE",
+        help=f"also write the {what} as a markdown page (with the date, commit, version, machine and command "
+        "line of the run), e.g. docs/results.md",
+    )
+    p.add_argument(
+        "--from-json",
+        type=Path,
+        metavar="FILE",
+        help="run nothing: read the JSON a former run printed with --json and show it (with --markdown: "
+        "render its page; the page reports that run's commit and machine)",
+    )
+
+
+#: Options that choose what ``evaluate suite`` / ``bench`` runs, meaningless with ``--from-json``.
+RUN_OPTIONS = {
+    "suite": ("data", "only", "seed", "config", "slam_only", "no_simulated"),
+    "bench": ("only",),
+}
+
+
+def check_usage(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Combinations argparse cannot express: ``--from-json`` runs nothing, so the options that choose what
+    to run are usage errors beside it (exit 2)."""
+    which = "suite" if getattr(args, "target", None) == "suite" else args.command
+    if getattr(args, "from_json", None) is None or which not in RUN_OPTIONS:
+        return
+    given = [name for name in RUN_OPTIONS[which] if getattr(args, name, None) not in (None, False)]
+    if given:
+        flags = ", ".join("--" + name.replace("_", "-") for name in given)
+        parser.error(f"--from-json runs nothing: {flags} cannot be used with it")
 
 
 def _add_scheduler(p: argparse.ArgumentParser) -> None:
@@ -205,9 +243,25 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-simulated", action="store_true", help="leave out the simulated loop world (loop-0 to loop-2)"
     )
     _add_json(q)
+    _add_results(q, "result tables")
 
-    p = sub.add_parser("bench", parents=quiet, help="performance figures (SPEC section 7)")
+    p = sub.add_parser(
+        "bench",
+        parents=quiet,
+        help="performance figures (SPEC section 7)",
+    )
+    from pipeline.bench import PART_NAMES
+
+    p.add_argument(
+        "--only",
+        nargs="+",
+        action="extend",
+        choices=PART_NAMES,
+        metavar="PART",
+        help=f"only these parts ({', '.join(PART_NAMES)}; default: all, 15-50 minutes)",
+    )
     _add_json(p)
+    _add_results(p, "figures")
     return parser
 
 
@@ -264,8 +318,11 @@ def _interrupted(signum: int) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
     if args.command is None:
-        args = parser.parse_args([*(sys.argv[1:] if argv is None else argv), "demo"])
+        args = parser.parse_args([*words, "demo"])
+    check_usage(parser, args)
+    args.command_line = shlex.join(["python", "run.py", *words])
     from pipeline.run_folder import note_interrupt, pending_interrupt
 
     note_interrupt(None)
