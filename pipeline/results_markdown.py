@@ -48,6 +48,14 @@ MAP_PROTOCOLS: tuple[tuple[str, str, str], ...] = (
 
 MAPPERS = ("gppol", "gpfol", "grid")
 
+CARTOGRAPHER = "Cartographer (Hess et al., ICRA 2016, Table I)"
+#: Published errors against the SLAM benchmark's relations (m, deg; None: not published), by suite row.
+PUBLISHED_RELATIONS: dict[str, tuple[float, float | None, str]] = {
+    "intel": (0.0229, 0.453, CARTOGRAPHER),
+    "fr079": (0.0452, 0.538, CARTOGRAPHER),
+    "fr-clinic": (0.06, None, CARTOGRAPHER + ", about"),
+}
+
 
 # ----------------------------------------------------------------------------------------------- helpers
 
@@ -222,6 +230,24 @@ def summary_table(rows: list[dict[str, Any]]) -> str:
             ]
         )
     return md_table(header, lines)
+
+
+def published_table(rows: list[dict[str, Any]]) -> str | None:
+    """Our relations errors beside the published ones (:data:`PUBLISHED_RELATIONS`), for the recordings of
+    this run that have both; None when none has."""
+    lines = []
+    for row in rows:
+        published = PUBLISHED_RELATIONS.get(row["name"])
+        bench = (row.get("slam") or {}).get("relations")
+        if published is None or not bench:
+            continue
+        trans, rot, source = published
+        theirs = f"{trans:g} m" + ("" if rot is None else f" / {rot:g} deg")
+        ours = f"{bench['trans_mean_m']:.4f} m / {bench['rot_mean_deg']:.3f} deg"
+        lines.append([row["name"], ours, theirs, source])
+    if not lines:
+        return None
+    return md_table(["recording", "ours: relations after loop closure", "published", "source"], lines)
 
 
 def slam_table(rows: list[dict[str, Any]]) -> str:
@@ -411,6 +437,19 @@ def suite_markdown(
         "",
         summary_table(rows),
         "",
+    ]
+    published = published_table(rows)
+    if published is not None:
+        lines += [
+            "## Against published results",
+            "",
+            "Mean translation / rotation error against the SLAM benchmark's relations (Kuemmerle et al. "
+            "2009) after loop closure.",
+            "",
+            published,
+            "",
+        ]
+    lines += [
         "## SLAM",
         "",
         "ATE: RMSE after SE(2) alignment, before / after loop closure; NEES: mean normalised estimation "

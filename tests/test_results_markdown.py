@@ -141,6 +141,12 @@ def test_suite_page_tables_hold_the_json_figures(suite_run) -> None:
     assert summary["broken"]["relations m / deg"].startswith("error: CarmenError: ")
     assert summary["jackal"]["relations m / deg"].startswith("skipped: no laser scans")
 
+    published = by_first(table(parts["Against published results"]))
+    assert list(published) == ["intel"]  # the only row here with relations and a published figure
+    ours = f"{rel['trans_mean_m']:.4f} m / {rel['rot_mean_deg']:.3f} deg"
+    assert published["intel"]["ours: relations after loop closure"] == ours
+    assert published["intel"]["published"] == "0.0229 m / 0.453 deg"
+
     slam = by_first(table(parts["SLAM"]))
     assert set(slam) == {"intel", "seattle"}  # the rows that ran SLAM
     ref = intel["slam"]["reference"]
