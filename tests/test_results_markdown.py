@@ -249,6 +249,7 @@ def fake_bench() -> dict:
         "gppol_choices": [{"kernel": "se", "expectation": "girard", "queries_per_s": 51_000.0}],
         **slam,
         "parts": ["mapping", "slam"],
+        "wall_s": 754.0,
         "provenance": provenance("python run.py bench --only mapping slam --json"),
     }
 
@@ -259,6 +260,7 @@ def test_bench_page_headline_targets_slam_runs_and_every_figure() -> None:
     parts, header = sections(page), header_of(page)
     assert header["command"] == "`python run.py bench --only mapping slam --json`"
     assert header["parts"] == "mapping, slam" and header["commit"] == f"`{git_commit()}`"
+    assert header["wall time"] == "12 min 34 s"
     headline = {r["key"].strip("`"): r for r in table(parts["Headline figures"])}
     assert headline["gpfol_queries_per_s"]["measured"] == "420,000"
     assert headline["gpfol_queries_per_s"][""] == "met"
@@ -275,7 +277,7 @@ def test_bench_page_headline_targets_slam_runs_and_every_figure() -> None:
     assert "| `mapping_bench.map_shape` | 310, 310 |" in every
     assert "| `gppol_choices[0].queries_per_s` | 51,000 |" in every
     assert "| `slam_intel_breakdown_s.odometry_s` | 5 |" in every
-    assert "provenance" not in every and "pipeline_intel_wall_s" not in every
+    assert "provenance" not in every and "pipeline_intel_wall_s" not in every and "`wall_s`" not in every
 
 
 def test_bench_page_from_a_saved_json(tmp_path) -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import importlib
 import resource
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -67,8 +68,8 @@ def run_bench(
     progress: Progress | None = None, parts: list[str] | None = None, command: str | None = None
 ) -> dict[str, Any]:
     """Run the benchmark parts named in ``parts`` (default: every one, in :data:`PARTS` order); returns the
-    SPEC keys (None where a part that did not run would measure them) plus extras, ``parts`` and
-    ``provenance`` (recorded before the first part, with the command line ``command``)."""
+    SPEC keys (None where a part that did not run would measure them) plus extras, ``parts``, ``wall_s``
+    (of them all) and ``provenance`` (recorded before the first part, with the command line ``command``)."""
     from pipeline.errors import PipelineError
     from pipeline.provenance import provenance
 
@@ -80,9 +81,11 @@ def run_bench(
     chosen = [(m, f) for m, f in PARTS if not parts or part_name(m) in parts]
     result: dict[str, Any] = dict.fromkeys(SPEC_KEYS)
     origin = provenance(command)
+    t0 = time.perf_counter()
     for module_name, func_name in chosen:
         result.update(getattr(importlib.import_module(module_name), func_name)(progress))
     result["peak_rss_mib"] = peak_rss_mib()
     result["parts"] = [part_name(m) for m, _ in chosen]
+    result["wall_s"] = time.perf_counter() - t0
     result["provenance"] = origin
     return result
