@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Command line of the GP occupancy-mapping tool (SPEC section 3).
+"""Command line of the GP occupancy-mapping tool (the README's "Command line"; SPEC section 3).
 
 This file only parses arguments, loads the configuration, calls :mod:`pipeline` and turns known errors
 (:class:`datasets.errors.GpomError`) into one line on stderr with exit status 1. Usage errors exit 2;
@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import signal
 import sys
 import threading
@@ -26,6 +27,11 @@ from datasets.errors import GpomError  # noqa: E402
 DESCRIPTION = """\
 Gaussian-process occupancy maps with variance (O'Callaghan & Ramos, IJRR 2012) from ROS bags and CARMEN
 logs, before and after loop closure. With no command, runs the demo on a simulated loop world."""
+
+EPILOG = """\
+Documentation in the checkout: README.md (start here); docs/run-folder.md (what a run writes, loading it in
+nav2, Foxglove, Rerun or Python); docs/mapping.md, docs/slam.md (the methods); docs/evaluation.md (the
+protocols of 'evaluate' and the figures of 'bench'); docs/results.md, docs/bench.md (the latest results)."""
 
 
 class _VersionAction(argparse.Action):
@@ -68,6 +74,43 @@ def _add_rerun(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_results(p: argparse.ArgumentParser, what: str, example: str) -> None:
+    """``--markdown FILE`` and ``--from-json FILE`` of ``evaluate suite`` and ``bench``."""
+    p.add_argument(
+        "--markdown",
+        type=Path,
+        metavar="FILE",
+        help=f"also write the {what} as a markdown page (with the date, commit, version, machine and command "
+        f"line of the run), e.g. {example}",
+    )
+    p.add_argument(
+        "--from-json",
+        type=Path,
+        metavar="FILE",
+        help="run nothing: read the JSON a former run printed with --json and show it (with --markdown: "
+        "render its page; the page reports that run's commit and machine)",
+    )
+
+
+#: Options that choose what ``evaluate suite`` / ``bench`` runs, meaningless with ``--from-json``.
+RUN_OPTIONS = {
+    "suite": ("data", "only", "seed", "config", "slam_only", "no_simulated"),
+    "bench": ("only",),
+}
+
+
+def check_usage(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Combinations argparse cannot express: ``--from-json`` runs nothing, so the options that choose what
+    to run are usage errors beside it (exit 2)."""
+    which = "suite" if getattr(args, "target", None) == "suite" else args.command
+    if getattr(args, "from_json", None) is None or which not in RUN_OPTIONS:
+        return
+    given = [name for name in RUN_OPTIONS[which] if getattr(args, name, None) not in (None, False)]
+    if given:
+        flags = ", ".join("--" + name.replace("_", "-") for name in given)
+        parser.error(f"--from-json runs nothing: {flags} cannot be used with it")
+
+
 def _add_scheduler(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--scheduler",
@@ -79,7 +122,10 @@ def _add_scheduler(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python run.py", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python run.py",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(
         "-q", "--quiet", action="store_true", help="no progress bars (also accepted after the command)"
@@ -152,7 +198,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scan-topic", help="scan topic of a bag input ('all': every one, 'none': odometry only)")
     p.add_argument("--odom-topic", help="odometry topic of the input, if a bag")
 
-    p = sub.add_parser("evaluate", parents=quiet, help="map or SLAM metrics (SPEC section 6)")
+    p = sub.add_parser(
+        "evaluate",
+        parents=quiet,
+        help="map or SLAM metrics (protocols: docs/evaluation.md)",
+        description="Map and SLAM metrics: the map hold-out and ground-truth protocols, maps from our own "
+        "SLAM, relations and ATE, the suite of every recording. What each protocol measures and why: "
+        "docs/evaluation.md; the latest suite results: docs/results.md.",
+    )
     ev = p.add_subparsers(dest="target", metavar="TARGET", required=True)
     q = ev.add_parser(
         "map", parents=quiet, help="AUC of GPPOL, GPFOL and the occupancy grid (ground truth or hold-out)"
@@ -205,9 +258,28 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-simulated", action="store_true", help="leave out the simulated loop world (loop-0 to loop-2)"
     )
     _add_json(q)
+    _add_results(q, "result tables", "docs/results.md")
 
-    p = sub.add_parser("bench", parents=quiet, help="performance figures (SPEC section 7)")
+    p = sub.add_parser(
+        "bench",
+        parents=quiet,
+        help="performance figures: GP query rates, SLAM and pipeline speed, memory (docs/evaluation.md)",
+        description="Performance figures, measured as benchmarks: GPFOL / GPPOL query rates, the SLAM stage "
+        "and the full pipeline on intel.clf, the demo with numba's cache empty and filled, a 10^8-cell map "
+        "tiled to disk. What each figure means: docs/evaluation.md (Benchmarks); the latest: docs/bench.md.",
+    )
+    from pipeline.bench import PART_NAMES
+
+    p.add_argument(
+        "--only",
+        nargs="+",
+        action="extend",
+        choices=PART_NAMES,
+        metavar="PART",
+        help=f"only these parts ({', '.join(PART_NAMES)}; default: all, 15-50 minutes)",
+    )
     _add_json(p)
+    _add_results(p, "figures", "docs/bench.md")
     return parser
 
 
@@ -264,8 +336,11 @@ def _interrupted(signum: int) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
     if args.command is None:
-        args = parser.parse_args([*(sys.argv[1:] if argv is None else argv), "demo"])
+        args = parser.parse_args([*words, "demo"])
+    check_usage(parser, args)
+    args.command_line = shlex.join(["python", "run.py", *words])
     from pipeline.run_folder import note_interrupt, pending_interrupt
 
     note_interrupt(None)

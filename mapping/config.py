@@ -64,7 +64,7 @@ class FreeSpaceConfig(BaseModel):
         "not enter: a return whose beam meets its surface (the chord between its neighbouring returns) at "
         "angle gamma stops max(margin_m, delta(r) / sin(gamma)) short, delta(r) = band_m + r band_per_m "
         "(0 and 0: the plain margin_m). 0.2: the best mean hold-out AUC over the ten development logs of "
-        "0.02, 0.05, 0.1, 0.2, 0.4 (README)",
+        "0.02, 0.05, 0.1, 0.2, 0.4 (docs/mapping.md)",
     )
     band_per_m: float = Field(
         0.0,
@@ -133,7 +133,8 @@ class PlsConfig(BaseModel):
         description="how the PLS link (alpha, beta) is fitted: 'loo' on the training problems' leave-one-out "
         "predictions (eqs. 11-12), 'holdout' on predictions along held-out scans' beams of a map of the "
         "rest (mapping.calibration: the level of space the data never reached is learnt, not implied; "
-        "better calibrated and a higher mean hold-out AUC, but lower GPPOL AUC in observed cells: README)",
+        "better calibrated and a higher mean hold-out AUC, but lower GPPOL AUC in observed cells: "
+        "docs/mapping.md)",
     )
     holdout_fraction: float = Field(
         0.1, gt=0, lt=1, description="share of the mapped scans held out ('holdout')"

@@ -22,15 +22,15 @@ remap              ``pipeline.remap.remap_run``
 from __future__ import annotations
 
 import argparse
-import importlib.metadata
+import json
 import sys
-import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import stage_boundary
+from pipeline.errors import PipelineError, stage_boundary
 from pipeline.progress import progress_for_terminal
+from pipeline.provenance import package_version
 
 EmitJson = Callable[[Any], None]
 
@@ -53,22 +53,6 @@ def dispatch(args: argparse.Namespace, emit_json: EmitJson) -> int:
     subject = next((str(v) for k in SUBJECT_ARGS if (v := getattr(args, k, None)) is not None), args.command)
     with stage_boundary(args.command, subject, name_known_errors=False):
         return handler(args, emit_json)
-
-
-def package_version() -> str:
-    """The version of gpom: ``project.version`` of the checkout's ``pyproject.toml`` (the project runs from
-    its checkout, whose file is the truth even when an old install left metadata behind), else the installed
-    distribution's metadata, else ``"unknown"``."""
-    pyproject = Path(__file__).resolve().parent.parent / "pyproject.toml"
-    try:
-        with open(pyproject, "rb") as f:
-            return str(tomllib.load(f)["project"]["version"])
-    except (OSError, tomllib.TOMLDecodeError, KeyError, TypeError):
-        pass
-    try:
-        return importlib.metadata.version("gpom")
-    except importlib.metadata.PackageNotFoundError:
-        return "unknown"
 
 
 def version_line() -> str:
@@ -240,31 +224,123 @@ def cmd_evaluate(args: argparse.Namespace, emit_json: EmitJson) -> int:
     return _report(result, args, emit_json, f"SLAM evaluation of {args.input}")
 
 
+def _check_markdown_target(path: Path | None) -> None:
+    """Fail before a long run if the ``--markdown`` page cannot be written (its folder is missing or not
+    writable, or the path is a folder)."""
+    if path is None:
+        return
+    folder = path.absolute().parent
+    if path.is_dir():
+        raise PipelineError(f"{path}: --markdown names a folder, not a file")
+    if not folder.is_dir():
+        raise PipelineError(f"{path}: cannot write the markdown page: no such folder {folder}")
+    import tempfile
+
+    try:
+        with tempfile.TemporaryFile(dir=folder, prefix=".gpom-write-probe-"):
+            pass
+    except OSError as exc:
+        raise PipelineError(f"{path}: cannot write the markdown page ({exc.strerror or exc})") from None
+
+
+def _load_result(path: Path, key: str, what: str) -> dict[str, Any]:
+    """The JSON object a former ``--json`` run printed (``key`` must be in it); one-line errors."""
+    try:
+        result = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise PipelineError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise PipelineError(f"{path}: cannot read it ({exc.strerror or exc})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        message = exc.msg if isinstance(exc, json.JSONDecodeError) else "not UTF-8 text"
+        raise PipelineError(f"{path}: not JSON ({message})") from None
+    if not isinstance(result, dict) or key not in result:
+        raise PipelineError(f"{path}: not the JSON of {what} (no '{key}' key)")
+    return result
+
+
+def _write_markdown(path: Path | None, text: str | None, emit_json: bool) -> None:
+    """Write the page ``text`` to ``path`` (nothing when either is None); ``wrote PATH`` unless JSON."""
+    if path is None or text is None:
+        return
+    from datasets.files import write_text_atomic
+
+    try:
+        write_text_atomic(path, text)
+    except OSError as exc:
+        raise PipelineError(f"{path}: cannot write the markdown page ({exc.strerror or exc})") from None
+    if not emit_json:
+        _say(f"wrote {path}")
+
+
+def _rendered(args: argparse.Namespace) -> dict[str, Any] | None:
+    """The renderer's provenance when the page comes from a saved JSON, else None."""
+    if args.from_json is None:
+        return None
+    from pipeline.provenance import provenance
+
+    return provenance(getattr(args, "command_line", None))
+
+
+def _source(args: argparse.Namespace) -> str | None:
+    return None if args.from_json is None else str(args.from_json)
+
+
 def _evaluate_suite(args: argparse.Namespace, emit_json: EmitJson, progress: Any) -> int:
     """``evaluate suite``: exit status 0 when every recording ran, failed or not (failures are rows)."""
-    from pipeline.evaluate_suite import TABLE_LEGEND, evaluate_suite
+    from pipeline.evaluate_suite import TABLE_LEGEND, evaluate_suite, table_row
 
-    result = evaluate_suite(
-        data_dir=args.data,
-        only=args.only,
-        seeds=args.seed,
-        config_path=args.config,
-        slam_only=args.slam_only,
-        simulated=not args.no_simulated,
-        progress=progress,
-    )
+    _check_markdown_target(args.markdown)
+    if args.from_json is not None:
+        result = _load_result(args.from_json, "datasets", "evaluate suite --json")
+        result["table"] = [table_row(r) for r in result["datasets"]]
+    else:
+        result = evaluate_suite(
+            data_dir=args.data,
+            only=args.only,
+            seeds=args.seed,
+            config_path=args.config,
+            slam_only=args.slam_only,
+            simulated=not args.no_simulated,
+            progress=progress,
+            command=getattr(args, "command_line", None),
+        )
+    page = None
+    if args.markdown is not None:
+        from pipeline.results_markdown import suite_markdown
+
+        page = suite_markdown(result, _rendered(args), _source(args))
     if args.json:
         emit_json({k: v for k, v in result.items() if k != "table"})
-        return 0
-    seeds = ",".join(map(str, result["seeds"]))
-    maps = "SLAM only" if result["slam_only"] else f"maps: hold-out seeds {seeds}"
-    title = f"evaluation suite of {result['data']} ({maps}; {result['wall_s']:.0f} s)"
-    print_columns(title, result["table"], TABLE_LEGEND)
+    else:
+        seeds = ",".join(map(str, result.get("seeds") or []))
+        maps = "SLAM only" if result.get("slam_only") else f"maps: hold-out seeds {seeds}"
+        wall = result.get("wall_s")
+        took = f"; {wall:.0f} s" if isinstance(wall, int | float) else ""
+        title = f"evaluation suite of {result.get('data')} ({maps}{took})"
+        print_columns(title, result["table"], TABLE_LEGEND)
+    _write_markdown(args.markdown, page, args.json)
     return 0
 
 
 def cmd_bench(args: argparse.Namespace, emit_json: EmitJson) -> int:
     from pipeline.bench import run_bench
 
-    result = run_bench(progress=progress_for_terminal(args.quiet or args.json))
-    return _report(result, args, emit_json, "benchmarks")
+    _check_markdown_target(args.markdown)
+    if args.from_json is not None:
+        result = _load_result(args.from_json, "gpfol_queries_per_s", "bench --json")
+    else:
+        result = run_bench(
+            progress=progress_for_terminal(args.quiet or args.json),
+            parts=args.only,
+            command=getattr(args, "command_line", None),
+        )
+    page = None
+    if args.markdown is not None:
+        from pipeline.results_markdown import bench_markdown
+
+        page = bench_markdown(result, _rendered(args), _source(args))
+    shown = result if args.json else {k: v for k, v in result.items() if k != "provenance"}
+    _report(shown, args, emit_json, "benchmarks")
+    _write_markdown(args.markdown, page, args.json)
+    return 0

@@ -3,9 +3,9 @@
 ``python -m pipeline.compare_figure RUN_DIR [RUN_DIR ...] --out PNG`` draws each run's classified maps
 (``maps/{before,after}/layers.npz``: black occupied, white free, grey unknown, as the exports classify them)
 on a common scale, with each map's occupied / free / unknown cell shares in its title. Made for comparing
-mappers or configurations on one recording (the README's GPPOL / GPFOL figures); the maps are reduced by
-``--step`` cells per pixel, keeping the most informative class of each block (occupied over free over
-unknown), so that thin walls survive the reduction.
+mappers or configurations on one recording (the GPPOL / GPFOL figures of docs/mapping.md); the maps are
+reduced by ``--step`` cells per pixel, keeping the most informative class of each block (occupied over free
+over unknown), so that thin walls survive the reduction.
 """
 
 from __future__ import annotations

@@ -58,8 +58,8 @@ class ExportConfig(BaseModel):
         "unknown in every export (-1 in the OccupancyGrid, grey 205 in the PGM) whatever its p(occ): no "
         "data constrained it. 0.9 = known once the data explain a tenth of the prior variance; it separates "
         "the cells a beam touched from the others best over the demo's and Intel's maps before and after "
-        "loop closure (README, 'Unknown space'): lower values turn observed cells whose poses are uncertain "
-        "unknown, higher ones widen the band of extrapolated cells around the data",
+        "loop closure (docs/mapping.md, 'Unknown cells'): lower values turn observed cells whose poses are "
+        "uncertain unknown, higher ones widen the band of extrapolated cells around the data",
     )
 
 

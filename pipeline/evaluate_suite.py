@@ -1,5 +1,6 @@
 """``evaluate suite [--data DIR] [--only NAME ...]``: every recording of a data folder through SLAM and the
-map protocols of SPEC section 6, one row per recording.
+map protocols of ``docs/evaluation.md`` (SPEC section 6), one row per recording; ``--markdown FILE`` writes
+the results page (:func:`pipeline.results_markdown.suite_markdown`).
 
 Discovery (:func:`discover`): the recordings in ``DIR``, its sub-folders and theirs (CARMEN logs, ROS1 bags,
 ROS2 bags -- folders with ``metadata.yaml``, ``.mcap``, ``.db3`` -- and KITTI folders of ``*.bin`` frames).
@@ -72,6 +73,7 @@ from pipeline.evaluate_map import (
 )
 from pipeline.evaluate_slam import match_reference_counted, match_relations, score_relations, slam_and_score
 from pipeline.progress import Progress, StageBar
+from pipeline.provenance import provenance
 from slam import geometry as se2
 from slam.metrics import align_se2
 
@@ -633,13 +635,17 @@ def evaluate_suite(
     slam_only: bool = False,
     simulated: bool = True,
     progress: Progress | None = None,
+    command: str | None = None,
 ) -> dict[str, Any]:
     """Run every recording of ``data_dir`` (default :data:`DEFAULT_DATA_DIR`) and, with ``simulated``, the
     ``loop`` world of seeds 0-2. Returns ``datasets`` (one row per recording, SPEC section 3), ``data``,
-    ``seeds``, ``slam_only``, ``wall_s`` and ``table`` (one dict of printable cells per row).
+    ``seeds``, ``slam_only``, ``wall_s``, ``provenance`` (date, commit, version, machine and the command
+    line ``command`` when the suite started, :func:`pipeline.provenance.provenance`) and ``table`` (one
+    dict of printable cells per row).
 
     ``only``: names to run (PipelineError naming the known ones when a name is unknown)."""
     progress = progress or Progress()
+    origin = provenance(command)
     config = load_config(config_path)
     data = Path(data_dir) if data_dir is not None else DEFAULT_DATA_DIR
     entries = discover(data) + (simulated_entries() if simulated else [])
@@ -662,6 +668,7 @@ def evaluate_suite(
         "slam_only": slam_only,
         "datasets": rows,
         "wall_s": time.perf_counter() - t0,
+        "provenance": origin,
         "table": [table_row(r) for r in rows],
     }
 

@@ -8,7 +8,7 @@ Hilbert-maps reference's ``perturb_data``; the rate does not depend on the covar
 configured laser noise. Its breakdown: the unscented transform of every beam (``gppol_inputs_s``, once per
 map), the neighbour search (shared with GPFOL) and the kernel expectations + solves. ``gppol_choices``
 times the other kernel-expectation choices on the first ``CHOICE_QUERIES`` cells of the same map (their
-AUCs are in the README / the GPPOL report, not measured here).
+AUCs: `evaluate map`, docs/results.md; not measured here).
 
 The map covers the lab as in the mapping figures (:func:`pipeline.figure_data.robust_bounds`: the central
 99.6% of the returns in x and y, grown by 1 m; ``map_shape``); the rate over the bounds of every return (a
