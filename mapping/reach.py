@@ -32,9 +32,7 @@ from mapping.kernels import Kernel
 FloatArray = NDArray[np.float64]
 
 #: k(d) / k(0) beyond an input's reach. The local GP keeps only the nearest inputs, so the places beyond
-#: every reach read the prior to about float32's resolution: on the fr-clinic map (GPPOL, after closure,
-#: 42 % of its 15 M cells beyond reach) the largest change of p(occ) at any cell is 2.3e-6, and no
-#: variance changes.
+#: every reach read the prior to about float32's resolution (tests/test_mapping_reach.py).
 REACH_TOLERANCE = 1e-4
 #: Reaches are grouped into classes whose largest reach is at most this factor above their smallest
 #: (one distance transform each) ...
