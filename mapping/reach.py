@@ -146,12 +146,12 @@ def reach_mask(
     ``ends_xy_m`` (a point input: start = end), each reaching ``reach_m`` (S,) metres.
 
     The segments are marked on a raster of ``cell_m`` (default a quarter of the 10th percentile of the
-    reaches; inputs of reach 0 are left out), grouped by
-    reach into geometric classes (each class's reaches within ``class_ratio``, at most ``classes`` of them),
-    one Euclidean distance transform per class. A place
-    is near where its cell lies within its class's largest reach plus ``cell_m (sqrt 2 + 1/4)`` of a marked
-    cell: half a diagonal for the query inside its cell, half for the input inside its cell, a quarter cell
-    for the sampling along the segment."""
+    reaches; inputs of reach 0 are left out), grouped by reach into geometric classes (each class's reaches
+    within ``class_ratio``, at most ``classes`` of them), one Euclidean distance transform per class (on a
+    coarser raster for long reaches, :func:`_class_near`). A place is near where its cell lies within its
+    class's largest reach plus ``cell (sqrt 2 + 1/4)`` of a marked cell: half a diagonal for the query
+    inside its cell, half for the input inside its cell, a quarter cell for the sampling along the
+    segment."""
     starts = np.ascontiguousarray(starts_xy_m, dtype=np.float64).reshape(-1, 2)
     ends = np.ascontiguousarray(ends_xy_m, dtype=np.float64).reshape(-1, 2)
     reach = np.asarray(reach_m, dtype=np.float64).reshape(-1)
@@ -175,14 +175,31 @@ def reach_mask(
         n_edges = min(max(1, classes) - 1, math.ceil(math.log(r_hi / r_lo) / math.log(class_ratio)) - 1)
     edges = r_lo * (r_hi / r_lo) ** (np.arange(1, n_edges + 1) / (n_edges + 1)) if n_edges else np.zeros(0)
     cls = np.searchsorted(edges, reach, side="left").astype(np.int64)  # reach <= edges[c] -> class c
-    n_cls = edges.size + 1
-    marked = np.zeros((n_cls, ny, nx), dtype=np.bool_)
-    _mark(starts, ends, cls, float(lo[0]), float(lo[1]), cell, nx, ny, marked)
     near = np.zeros((ny, nx), dtype=bool)
-    for c in range(n_cls):
+    for c in range(edges.size + 1):
         members = cls == c
-        if not (members.any() and marked[c].any()):
-            continue
-        dist_m = ndimage.distance_transform_edt(~marked[c]) * cell
-        near |= dist_m <= float(reach[members].max()) + margin
+        if members.any():
+            near |= _class_near(starts[members], ends[members], float(reach[members].max()), lo, cell, nx, ny)
     return ReachMask(near, (float(lo[0]), float(lo[1])), cell)
+
+
+def _class_near(
+    starts: FloatArray, ends: FloatArray, reach_m: float, lo: FloatArray, cell: float, nx: int, ny: int
+) -> NDArray[np.bool_]:
+    """(ny, nx) near cells of the raster (corner ``lo``, ``cell``) for inputs on ``starts`` -> ``ends`` all
+    reaching at most ``reach_m``. A class of long reach is transformed on a raster of up to ``reach_m / 16``
+    (cheap), then read at the fine cells' centres: a query of a fine cell may lie in the next coarse cell,
+    half a fine diagonal more margin."""
+    coarse = max(cell, reach_m / 16.0)
+    cx, cy = (nx, ny) if coarse == cell else (max(1, math.ceil(n * cell / coarse)) for n in (nx, ny))
+    marked = np.zeros((1, cy, cx), dtype=np.bool_)
+    _mark(
+        starts, ends, np.zeros(starts.shape[0], np.int64), float(lo[0]), float(lo[1]), coarse, cx, cy, marked
+    )
+    margin = coarse * (math.sqrt(2.0) + 0.25) + (cell * math.sqrt(0.5) if coarse > cell else 0.0)
+    near = ndimage.distance_transform_edt(~marked[0]) * coarse <= reach_m + margin
+    if coarse == cell:
+        return near
+    cols = np.minimum(((np.arange(nx) + 0.5) * cell / coarse).astype(np.int64), cx - 1)
+    rows = np.minimum(((np.arange(ny) + 0.5) * cell / coarse).astype(np.int64), cy - 1)
+    return near[np.ix_(rows, cols)]

@@ -102,8 +102,10 @@ def test_reach_mask_keeps_every_place_within_reach_and_drops_the_far_ones() -> N
     near = mask.contains(q)
     excess = _segment_distance(q, starts, ends) - reach[None]
     assert near[(excess <= 0).any(axis=1)].all()
-    margin = mask.cell_m * (math.sqrt(2) + 0.25)
-    beyond = (excess > 2 * margin + mask.cell_m).all(axis=1)
+    # the raster of a reach r has cells of max(cell, r / 16): its margin, twice, and a fine cell of slack
+    coarse = np.maximum(mask.cell_m, reach / 16)
+    slack = 2 * (coarse * (math.sqrt(2) + 0.25) + mask.cell_m) + mask.cell_m
+    beyond = (excess > slack[None]).all(axis=1)
     assert beyond.sum() > 1000 and not near[beyond].any()
     assert not mask.contains(np.array([[1e4, 1e4]]))[0]  # off the raster: beyond reach
     with pytest.raises(ValueError, match="finite"):
