@@ -275,27 +275,7 @@ def _map_axes(ax: Axes, extent: tuple[float, float, float, float]) -> None:
 
 
 def _show(ax: Axes, image: NDArray, extent, **style):
-    """Draw ``image`` (H, W) scalars with ``cmap`` / ``norm`` / ``vmin`` / ``vmax``, or (H, W, 4) RGBA;
-    returns what a colour bar reads. Scalars are coloured here, once, into 8-bit RGBA (NaN: the colour map's
-    "bad" colour, transparent) and the picture is drawn from that: matplotlib would resample the float
-    layer and colour it at every draw, most of a large map's figure time."""
-    colour_keys = {"cmap", "norm", "vmin", "vmax"}
-    img = np.asarray(image)
-    if img.ndim != 2 or not colour_keys & set(style):
-        return ax.imshow(img, origin="lower", extent=extent, interpolation="nearest", aspect="auto", **style)
-    mappable = matplotlib.cm.ScalarMappable(
-        norm=style.get("norm"),
-        cmap=matplotlib.colormaps[style.get("cmap") or "viridis"]
-        if isinstance(style.get("cmap"), str) or style.get("cmap") is None
-        else style["cmap"],
-    )
-    if style.get("norm") is None:
-        mappable.set_clim(style.get("vmin"), style.get("vmax"))
-    mappable.set_array(img)
-    rgba = mappable.to_rgba(img, bytes=True)
-    rest = {k: v for k, v in style.items() if k not in colour_keys}
-    ax.imshow(rgba, origin="lower", extent=extent, interpolation="nearest", aspect="auto", **rest)
-    return mappable
+    return ax.imshow(image, origin="lower", extent=extent, interpolation="nearest", aspect="auto", **style)
 
 
 def _unknown_overlay(ax: Axes, unknown: NDArray, view: MapView, extent) -> None:
