@@ -234,13 +234,11 @@ def _check_markdown_target(path: Path | None) -> None:
         raise PipelineError(f"{path}: --markdown names a folder, not a file")
     if not folder.is_dir():
         raise PipelineError(f"{path}: cannot write the markdown page: no such folder {folder}")
-    import tempfile
+    from pipeline.run_folder import probe_writable
 
-    try:
-        with tempfile.TemporaryFile(dir=folder, prefix=".gpom-write-probe-"):
-            pass
-    except OSError as exc:
-        raise PipelineError(f"{path}: cannot write the markdown page ({exc.strerror or exc})") from None
+    reason = probe_writable(folder)
+    if reason is not None:
+        raise PipelineError(f"{path}: cannot write the markdown page ({reason})")
 
 
 def _load_result(path: Path, key: str, what: str) -> dict[str, Any]:

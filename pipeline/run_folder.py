@@ -54,6 +54,17 @@ def pending_interrupt() -> int | None:
     return _Interrupts.signum
 
 
+def probe_writable(folder: Path) -> str | None:
+    """Whether a file can be created in ``folder`` (a real probe: permissions, read-only file systems and
+    ACLs all count): None if so, else the reason."""
+    try:
+        with tempfile.TemporaryFile(dir=folder, prefix=".gpom-write-probe-"):
+            pass
+    except OSError as exc:
+        return str(exc.strerror or exc)
+    return None
+
+
 def check_output_dir(out_dir: Path, overwrite: bool, min_free_bytes: int = MIN_FREE_BYTES) -> None:
     """Fail early (before any work) if ``out_dir`` exists and may not be replaced, or cannot be written.
 
@@ -70,11 +81,9 @@ def check_output_dir(out_dir: Path, overwrite: bool, min_free_bytes: int = MIN_F
         ancestor = ancestor.parent
     if not ancestor.is_dir():
         raise PipelineError(f"{out_dir}: cannot be created ({ancestor} is not a folder)")
-    try:
-        with tempfile.TemporaryFile(dir=ancestor, prefix=".gpom-write-probe-"):
-            pass
-    except OSError as exc:
-        raise PipelineError(f"{out_dir}: cannot write into {ancestor} ({exc.strerror or exc})") from None
+    reason = probe_writable(ancestor)
+    if reason is not None:
+        raise PipelineError(f"{out_dir}: cannot write into {ancestor} ({reason})")
     free = shutil.disk_usage(ancestor).free
     if free < min_free_bytes:
         raise PipelineError(

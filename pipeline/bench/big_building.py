@@ -10,15 +10,12 @@ machines differ, ratios of runs made one after the other do not. Timings depend 
 
 from __future__ import annotations
 
-import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
 from datasets.paths import SHARED_DATA_DIR
-from pipeline.config import load_config
+from pipeline.bench.pipeline import timed_run
 from pipeline.progress import Progress
-from pipeline.run import run_pipeline
 
 FR_CLINIC = SHARED_DATA_DIR / "fr-clinic" / "fr-clinic_robotlaser.clf.bz2"
 
@@ -40,11 +37,7 @@ def render_rates(stats: dict[str, float]) -> dict[str, float | None]:
 
 def bench_big_building(progress: Progress | None = None, path: str | Path = FR_CLINIC) -> dict[str, Any]:
     """Run the full pipeline once on ``path`` (default fr-clinic) and report its figures."""
-    config = load_config()
-    with tempfile.TemporaryDirectory(prefix="gpom-bench-") as tmp:
-        t0 = time.perf_counter()
-        summary = run_pipeline(Path(path), Path(tmp) / "run", config, progress=progress)
-        wall = time.perf_counter() - t0
+    summary, wall, _ = timed_run(path, progress)
     h, w = summary["map"]["shape_hw"]
     return {
         "big_building_input": str(path),
