@@ -10,7 +10,9 @@ Cholesky of ``K + sigma_n^2 I`` (jitter added and the factorisation retried if i
 goes through the neighbour search (:func:`mapping.index.knn_points`, :func:`mapping.index.knn_segments`,
 warm-started from the previous query's neighbours) and gets its training set, centred on the query
 (``_training_inputs``; GPPOL, section 3.6: ``_gaussian_inputs``, the means and 2x2 covariances of the
-inputs), copied into one of LANES lanes. Then LANES queries are solved together, the lane index innermost
+inputs), copied into one of LANES lanes, unless no input informs the query (``_informs``: every entry of
+``k*`` below :data:`NEGLIGIBLE_KERNEL` of ``k(0)``, e.g. far from precise data yet within the reach of a
+distant, metres-uncertain scan): its lane stays empty and it reads the prior. Then LANES queries are solved together, the lane index innermost
 so that LLVM vectorises the loops: the kernel blocks ``K``, ``k*`` (``_kernel_lanes``; GPPOL: the kernel
 integrated over the input distributions, eq. 19 or eq. 23, ``_noisy_kernel_lanes``; the test point stays
 deterministic), the Cholesky factorisation and the two forward solves (``_solve_lanes``), then mean,
@@ -56,6 +58,11 @@ KERNEL_MATERN32 = 2
 KERNEL_MATERN52 = 3
 
 SQRT2 = math.sqrt(2.0)
+
+#: k(x*, x_i) / k(0) below which a training input does not inform the query. A query whose neighbours all
+#: lie below it reads the prior without a solve (``_informs``); :mod:`mapping.reach` skips the places beyond
+#: every input's reach by the same tolerance.
+NEGLIGIBLE_KERNEL = 1e-5
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -396,6 +403,34 @@ def _pair_cov(SL, SLo, GL, i, j, lane, c):
     if GL[i, lane] == GL[j, lane]:
         return SLo[i, c, lane] + SLo[j, c, lane]
     return SL[i, c, lane] + SL[j, c, lane]
+
+
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
+def _informs(mode, kid, kp, X, S, n):
+    """Whether one of the ``n`` training inputs (means X (n, 2) centred on the query, GPPOL's packed
+    covariances S (n, 3)) has ``k(x*, x_i) >= NEGLIGIBLE_KERNEL k(0)``. If none has, every entry of k* is
+    negligible: the mean (eq. 2) and the variance reduction (eq. 3) vanish and the query reads the prior.
+    Only the stationary kernels with a closed form are checked (exact inputs, eq. 19); the NN kernel does not
+    decay and the quadrature modes are solved as they are (True)."""
+    if kid == KERNEL_NN or mode == INPUTS_GH_DIFFERENCE or mode == INPUTS_GH_NODES:
+        return True
+    c = kp[1]
+    for i in range(n):
+        dx = X[i, 0]
+        dy = X[i, 1]
+        if mode == INPUTS_POINTS:
+            v = _stationary(kid, c, dx * dx + dy * dy)
+        else:  # INPUTS_GIRARD, SE: eq. (19) over k(0) = sf2
+            ell2 = 1.0 / c
+            a00 = ell2 + S[i, 0]
+            a01 = S[i, 1]
+            a11 = ell2 + S[i, 2]
+            r = 1.0 / math.sqrt(a00 * a11 - a01 * a01)
+            q = (dx * dx * a11 - 2.0 * dx * dy * a01 + dy * dy * a00) * (r * r)
+            v = ell2 * r * math.exp(-0.5 * q)
+        if v >= NEGLIGIBLE_KERNEL:
+            return True
+    return False
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
@@ -815,6 +850,9 @@ def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean,
                 n = _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y)
             else:
                 n = _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, SLo1, G1, y)
+            if not _informs(mode, gp.kernel_id, gp.kernel_params, X, S, n):
+                continue  # an empty lane: the prior, without a solve
+            if mode != INPUTS_POINTS:
                 for i in range(n):
                     for c in range(3):
                         SL[i, c, lane] = S[i, c]

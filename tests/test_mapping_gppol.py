@@ -8,6 +8,7 @@ import pytest
 
 from datasets.registry import open_dataset
 from mapping.config import MappingConfig
+from mapping.core import NEGLIGIBLE_KERNEL
 from mapping.gpmap import GPOccupancyMap
 from mapping.gppol import GaussianInputs, SensorNoise, input_moments
 from mapping.kernels import make_kernel
@@ -134,6 +135,40 @@ def test_two_points_of_one_scan_keep_their_kernel_two_of_two_scans_integrate_ove
                         3, K2, ks, np.ascontiguousarray(z), np.ascontiguousarray(w), np.zeros((3, 1, 2, 32)),
                         np.zeros((3, 1, 32)))  # fmt: skip
     assert K2[1, 0, 0] < 0.95 * within_mc  # 0.91 of it here
+
+
+def test_a_query_whose_neighbours_all_have_negligible_k_star_reads_the_prior_unsolved(intel) -> None:
+    """One scan placed metres uncertain reaches far (its inputs' reach covers places far from the data), yet
+    where a query's own neighbours all have k(x*, x_i) below NEGLIGIBLE_KERNEL of k(0) the core answers the
+    prior without a solve; the full solve (numpy reference) differs from it by little there, and every
+    other query is solved as before."""
+    rec, base = intel
+    beams = em.make_beams(rec, base, np.arange(40, 70), MappingConfig())
+    cov = np.tile(np.diag([0.02**2, 0.02**2, 0.005**2]), (len(rec.scans), 1, 1))
+    cov[55] = np.diag([4.0**2, 4.0**2, 0.2**2])  # one scan a pass the graph barely ties down
+    moments = input_moments(beams, cov, [SensorNoise(0.01, 1e-4)])
+    laser_only = input_moments(beams, None, [SensorNoise(0.01, 1e-4)])
+    params = GPParams(make_kernel("se", (0.9, 0.3)), 0.1, 8.0, 0.3, {"inputs": {}})
+    inputs = GaussianInputs(moments, InputExpectation(GIRARD), local_moments=laser_only)
+    gp = GPOccupancyMap(beams, params, 15, 15, inputs=inputs)
+    lo, hi = beams.hit_xy_m.min(axis=0) - 12.0, beams.hit_xy_m.max(axis=0) + 12.0
+    q = np.random.default_rng(5).uniform(lo, hi, (4000, 2))
+    q = q[gp.reach().contains(q)]  # the places some input reaches: the reach test solves them all
+    mu, var, _, full = _reference_prediction(gp, q, 15, 15)
+    q, mu, var = q[full], mu[full], var[full]
+    X, cov_q, *_ = gp.index.local_gaussians_by_scan(
+        q, 15, 15, inputs.moments, inputs.free_moments, inputs.local(), inputs.local_free()
+    )
+    ks = inputs.expectation.cross(params.kernel, X, cov_q, np.zeros((X.shape[0], 1, 2)))[..., 0]
+    kss = params.prior_variance
+    negligible = np.abs(ks).max(axis=1) < NEGLIGIBLE_KERNEL * kss
+    assert 20 < negligible.sum() < negligible.size - 20  # both kinds of query are there
+    pred = gp.query(q, sort=False)
+    np.testing.assert_array_equal(pred.mean[negligible], 0.0)
+    np.testing.assert_array_equal(pred.variance[negligible], kss)
+    assert np.abs(mu[negligible]).max() < 1e-3 and np.abs(var[negligible] - kss).max() < 1e-6
+    np.testing.assert_allclose(pred.mean[~negligible], mu[~negligible], atol=2e-7, rtol=1e-6)
+    np.testing.assert_allclose(pred.variance[~negligible], var[~negligible], atol=2e-7, rtol=1e-6)
 
 
 def test_exact_inputs_make_gppol_gpfol(intel) -> None:
