@@ -21,6 +21,9 @@ from mapping.tiling import (
     TileStore,
     concat_beams,
     merge_beams,
+    render_batched,
+    render_per_tile,
+    render_serial,
 )
 from mapping.tiling.support import _segment_rect
 from mapping.train import GPParams
@@ -177,18 +180,43 @@ def test_tile_support_gives_every_query_its_neighbours(corridor) -> None:
 # tiled rendering
 
 
+# SE-kernel parameters: a kernel that decays, so that the reach test and the negligible-k* skip take part
+SE_PARAMS = GPParams(make_kernel("se", {"sigma_f": 0.9, "length_scale": 0.3}), 0.1, 5.0, 0.05)
+
+
+def se_factory(beams, cov):
+    return GPOccupancyMap(beams, SE_PARAMS, K_OCC, K_FREE)
+
+
+@pytest.mark.parametrize("engine", [render_per_tile, render_batched, render_serial])
 @pytest.mark.parametrize("tile_cells", [8, 33])
-def test_tiled_map_equals_untiled_render(corridor, tile_cells) -> None:
+@pytest.mark.parametrize("kernel", ["nn", "se"])
+def test_tiled_map_equals_untiled_render(corridor, tile_cells, engine, kernel) -> None:
     *_, beams, bounds = corridor
-    untiled = GPOccupancyMap(beams, PARAMS, K_OCC, K_FREE).render(bounds, 0.25)
+    params, factory = (PARAMS, gp_factory) if kernel == "nn" else (SE_PARAMS, se_factory)
+    untiled = GPOccupancyMap(beams, params, K_OCC, K_FREE).render(bounds, 0.25)
     grid = TileGrid.from_bounds(bounds, 0.25, tile_cells)
-    m = IncrementalMap(beams, grid, gp_factory, K_OCC, K_FREE)
+    m = IncrementalMap(beams, grid, factory, K_OCC, K_FREE, renderer=engine)
     report = m.render_all()
     assert report.tiles_recomputed == len(grid) and report.fraction_recomputed == 1.0
     tiled = m.layers()
     assert tiled.origin_xy_m == untiled.origin_xy_m and tiled.shape == untiled.shape
     assert_same_layers(tiled, untiled)
-    assert np.all(m.support_beams < len(beams))
+    assert np.all(m.support_beams < len(beams)) and np.all(m.support_beams > 0)
+    if kernel == "se":  # the SE map has places beyond every input's reach: the test covers them
+        assert (untiled.mean == 0).mean() > 0.01
+
+
+def test_batched_engine_gives_the_per_tile_radii_and_supports(corridor) -> None:
+    *_, beams, bounds = corridor
+    grid = TileGrid.from_bounds(bounds, 0.25, 16)
+    one = IncrementalMap(beams, grid, gp_factory, K_OCC, K_FREE, renderer=render_per_tile)
+    one.render_all()
+    batched = IncrementalMap(beams, grid, gp_factory, K_OCC, K_FREE, renderer=render_batched)
+    batched.render_all()
+    np.testing.assert_array_equal(batched.rho_occ, one.rho_occ)
+    np.testing.assert_array_equal(batched.rho_free, one.rho_free)
+    np.testing.assert_array_equal(batched.support_beams, one.support_beams)
 
 
 def test_incremental_added_scans_equal_full_recomputation(corridor) -> None:

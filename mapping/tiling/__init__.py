@@ -9,7 +9,16 @@ only the tiles that new scans or moved poses reach.
 
 from mapping.tiling.grid import TileGrid
 from mapping.tiling.incremental import IncrementalMap, UpdateReport, default_index_cell_m
-from mapping.tiling.render import MapFactory, RenderJob, TileRenderer, TileResult, render_serial, render_tile
+from mapping.tiling.render import (
+    MapFactory,
+    RenderJob,
+    TileRenderer,
+    TileResult,
+    render_batched,
+    render_per_tile,
+    render_serial,
+    render_tile,
+)
 from mapping.tiling.store import ArraySink, TileStore
 from mapping.tiling.support import SupportIndex, beam_displacement_m, concat_beams, merge_beams
 
@@ -28,6 +37,8 @@ __all__ = [
     "concat_beams",
     "default_index_cell_m",
     "merge_beams",
+    "render_batched",
+    "render_per_tile",
     "render_serial",
     "render_tile",
 ]

@@ -86,8 +86,76 @@ class TileRenderer(Protocol):
     def __call__(self, job: RenderJob, tiles: Iterable[int]) -> Iterator[TileResult]: ...
 
 
-def render_serial(job: RenderJob, tiles: Iterable[int]) -> Iterator[TileResult]:
-    """The in-process engine: one tile after another (each tile's queries run on numba's threads)."""
+#: The in-process engine renders tiles one at a time up to this share of the grid's tiles, and beyond it
+#: through one map of all beams (:func:`render_batched`): each tile's own map rebuilds its support's neighbour
+#: index and input Gaussians, which on a building-sized map re-render costs several times the whole map's
+#: single rendering, while a few tiles (an incremental update) cost less than building the whole map.
+BATCH_SHARE = 0.05
+#: Cells queried at once by :func:`render_batched` (bounds its memory on a map of any size).
+BATCH_CELLS = 4_000_000
+
+
+def render_per_tile(job: RenderJob, tiles: Iterable[int]) -> Iterator[TileResult]:
+    """One tile after another, each from its own support (each tile's queries run on numba's threads)."""
     scratch = job.index.scratch()
     for t in tiles:
         yield render_tile(job, int(t), scratch)
+
+
+def render_batched(job: RenderJob, tiles: Iterable[int]) -> Iterator[TileResult]:
+    """The tiles' cells queried on one map of all of ``job``'s beams, :data:`BATCH_CELLS` cells at a time.
+    A tile's support holds every beam its cells' neighbour searches can find, so this is the map that
+    :func:`render_per_tile` gives, except that a cell beyond the reach of every input of a tile's support
+    reads the prior there and may be solved here (to the reach test's tolerance, :mod:`mapping.reach`).
+    Each result still carries its tile's support radii and support size (incremental updates need them)."""
+    tiles = [int(t) for t in tiles]
+    if not tiles:
+        return
+    t0 = time.perf_counter()
+    gp = job.factory(job.index.beams, job.cov_xytheta)
+    build_s = time.perf_counter() - t0
+    scratch = job.index.scratch()
+    start = 0
+    while start < len(tiles):
+        group = [tiles[start]]
+        cells = int(np.prod(job.grid.tile_shape(tiles[start])))
+        while start + len(group) < len(tiles):
+            more = int(np.prod(job.grid.tile_shape(tiles[start + len(group)])))
+            if cells + more > BATCH_CELLS:
+                break
+            group.append(tiles[start + len(group)])
+            cells += more
+        start += len(group)
+        t1 = time.perf_counter()
+        centres = [job.grid.cell_centres(t) for t in group]
+        pred = gp.query(np.concatenate(centres), sort=False)
+        share_s = (time.perf_counter() - t1 + build_s * cells / max(1, job.grid.cells)) / len(group)
+        lo = 0
+        for t, c in zip(group, centres, strict=True):
+            t2 = time.perf_counter()
+            hi = lo + c.shape[0]
+            shape = job.grid.tile_shape(t)
+            rect = job.grid.rects([t])[0]
+            r_occ, r_free = job.index.tile_radii(rect, job.k_occ, job.k_free, scratch)
+            support = job.index.support(rect, r_occ, r_free, scratch)
+            yield TileResult(
+                tile=t,
+                probability=pred.probability[lo:hi].reshape(shape).astype(np.float32),
+                mean=pred.mean[lo:hi].reshape(shape).astype(np.float32),
+                variance=pred.variance[lo:hi].reshape(shape).astype(np.float32),
+                r_occ_m=r_occ,
+                r_free_m=r_free,
+                support_beams=int(support.size),
+                seconds=share_s + time.perf_counter() - t2,
+            )
+            lo = hi
+
+
+def render_serial(job: RenderJob, tiles: Iterable[int]) -> Iterator[TileResult]:
+    """The in-process engine: :func:`render_per_tile` for a few tiles, :func:`render_batched` beyond
+    :data:`BATCH_SHARE` of the grid."""
+    tiles = [int(t) for t in tiles]
+    if len(tiles) > 1 and len(tiles) > BATCH_SHARE * len(job.grid):
+        yield from render_batched(job, tiles)
+    else:
+        yield from render_per_tile(job, tiles)
