@@ -6,18 +6,19 @@ these ``n <= k_occ + k_free`` training points, in coordinates centred on the que
 Cholesky of ``K + sigma_n^2 I`` (jitter added and the factorisation retried if it fails), and the PLS link
 ``p = Phi((alpha mu + beta) / sqrt(1 + alpha^2 (sigma^2 + sigma_n^2)))`` (SPEC section 5, R&W eq. 6.42).
 
-:func:`predict_batch` runs chunks of queries in parallel (``_predict_chunk``); within a chunk each query
-goes through the neighbour search (:func:`mapping.index.knn_points`, :func:`mapping.index.knn_segments`,
+:func:`predict_batch` runs chunks of queries in parallel (``_predict_chunk``); within a chunk each query goes
+through the neighbour search (:func:`mapping.index.knn_points`, :func:`mapping.index.knn_segments`,
 warm-started from the previous query's neighbours) and gets its training set, centred on the query
-(``_training_inputs``; GPPOL, section 3.6: ``_gaussian_inputs``, the means and 2x2 covariances of the
-inputs), copied into one of LANES lanes, unless no input informs the query (``_informs``: every entry of
-``k*`` below :data:`NEGLIGIBLE_KERNEL` of ``k(0)``, e.g. far from precise data yet within the reach of a
-distant, metres-uncertain scan): its lane stays empty and it reads the prior. Then LANES queries are solved together, the lane index innermost
-so that LLVM vectorises the loops: the kernel blocks ``K``, ``k*`` (``_kernel_lanes``; GPPOL: the kernel
-integrated over the input distributions, eq. 19 or eq. 23, ``_noisy_kernel_lanes``; the test point stays
-deterministic), the Cholesky factorisation and the two forward solves (``_solve_lanes``), then mean,
-variance and link (``_write_lanes``). A lane whose factorisation fails is redone alone by the scalar path
-(``_kernel_blocks`` or ``_noisy_kernel_single``, then ``_solve_local``, with jitter retries).
+(``_training_inputs``; GPPOL, section 3.6: ``_gaussian_inputs``, the means and 2x2 covariances of the inputs),
+copied into one of LANES lanes, unless no input informs the query (``_informs``: every entry of ``k*`` below
+:data:`NEGLIGIBLE_KERNEL` of ``k(0)``, e.g. far from precise data yet within the reach of a distant,
+metres-uncertain scan): its lane stays empty and it reads the prior. Then LANES queries are solved together,
+the lane index innermost so that LLVM vectorises the loops: the kernel blocks ``K``, ``k*``
+(``_kernel_lanes``; GPPOL: the kernel integrated over the input distributions, eq. 19 or eq. 23,
+``_noisy_kernel_lanes``; the test point stays deterministic), the Cholesky factorisation and the two forward
+solves (``_solve_lanes``), then mean, variance and link (``_write_lanes``). A lane whose factorisation fails
+is redone alone by the scalar path (``_kernel_blocks`` or ``_noisy_kernel_single``, then ``_solve_local``,
+with jitter retries).
 
 Arguments are named tuples (:class:`LocalGP`, :class:`InputGaussians`, and the indexes of
 :mod:`mapping.index`), which numba compiles like separate arguments.
