@@ -28,7 +28,7 @@ from mapping.grid import OccupancyGrid
 from mapping.kernels import KERNELS, Kernel, make_kernel
 from mapping.noisy_kernels import GAUSS_HERMITE, GIRARD, InputExpectation
 from mapping.tiling import ArraySink, IncrementalMap, TileGrid, TileRenderer, render_serial
-from mapping.train import GPParams, ParamsFileError, train_gp
+from mapping.train import GPParams, ParamsFileError, train_gp, training_scans
 from mapping.unscented import UTParams
 
 MAPPERS = ("gppol", "gpfol")
@@ -185,8 +185,8 @@ class MapBuilder:
             beams = beams.with_free_margin(cfg.train.free_margin_m)
         inputs = None
         if gppol:
-            # training reads the first train.scans scans only (train_gp): their beams alone go through the UT
-            beams = beams.select_scans(np.unique(beams.scan_index)[: cfg.train.scans])
+            # training reads train.scans scans only (train_gp): their beams alone go through the UT
+            beams = beams.select_scans(training_scans(beams.scan_index, cfg.train.scans, cfg.train.windows))
             inputs = self.gaussian_inputs(beams, None, make_kernel(kernel_name))
         try:
             return train_gp(
@@ -204,6 +204,7 @@ class MapBuilder:
                 index_cell_m=cfg.index_cell_m,
                 learn_noise=cfg.learn_noise,
                 inputs=inputs,
+                windows=cfg.train.windows,
             )
         except ValueError as exc:
             raise MappingError(f"cannot train the GP: {exc}") from None

@@ -104,7 +104,14 @@ class TrainingConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    scans: int = Field(50, ge=1, description="hyperparameters are learnt from the first N scans")
+    scans: int = Field(50, ge=1, description="hyperparameters are learnt from N scans")
+    windows: int = Field(
+        1,
+        ge=1,
+        le=10_000,
+        description="the N scans are this many runs of consecutive scans spread evenly over the recording "
+        "(1: the first N scans)",
+    )
     problems: int = Field(64, ge=1, le=100_000, description="local neighbourhoods in the training set")
     anneal_evaluations: int = Field(
         200, ge=0, le=1_000_000, description="dual-annealing budget (likelihood evaluations; 0 skips it)"

@@ -244,6 +244,22 @@ def train_hyperparameters(
     return trained, nv, info
 
 
+def training_scans(scan_ids: NDArray, n_scans: int, windows: int = 1) -> NDArray[np.int64]:
+    """The ``n_scans`` of the distinct, sorted ``scan_ids`` that training reads: ``windows`` runs of
+    consecutive scans (as equal as can be) whose starts are spread evenly over the recording (1: the first
+    ``n_scans``). Consecutive scans keep each local problem a neighbourhood of one scan and its neighbours
+    in time; several runs let the hyperparameters see more of the scene than its first metres."""
+    ids = np.unique(np.asarray(scan_ids, dtype=np.int64))
+    if ids.size <= n_scans:
+        return ids
+    windows = max(1, min(int(windows), int(n_scans)))
+    sizes = np.full(windows, n_scans // windows)
+    sizes[: n_scans % windows] += 1
+    starts = np.linspace(0, ids.size - sizes[-1], windows).round().astype(np.int64)
+    picked = np.concatenate([np.arange(a, a + m) for a, m in zip(starts, sizes, strict=True)])
+    return ids[np.unique(np.clip(picked, 0, ids.size - 1))]
+
+
 def train_gp(
     beams: Beams,
     kernel_name: str = "nn",
@@ -260,11 +276,13 @@ def train_gp(
     index_cell_m: float | None = None,
     learn_noise: bool = False,
     inputs: GaussianInputs | None = None,
+    windows: int = 1,
 ) -> GPParams:
-    """Learn kernel hyperparameters and the PLS link from the first ``n_scans`` distinct scans of ``beams``
-    (in their scan order). With ``inputs`` (the beams' input Gaussians) the GPPOL model is trained: eq. (9)
-    and the leave-one-out PLS fit (eqs. 10-12) with the kernel integrated over the inputs."""
-    scans = np.unique(beams.scan_index)[:n_scans]
+    """Learn kernel hyperparameters and the PLS link from ``n_scans`` distinct scans of ``beams`` in
+    ``windows`` runs of consecutive scans (:func:`training_scans`; 1: the first ``n_scans``). With
+    ``inputs`` (the beams' input Gaussians) the GPPOL model is trained: eq. (9) and the leave-one-out PLS
+    fit (eqs. 10-12) with the kernel integrated over the inputs."""
+    scans = training_scans(beams.scan_index, n_scans, windows)
     keep = np.isin(beams.scan_index, scans)
     train_beams = beams.subset(keep)
     index = BeamIndex.build(train_beams, index_cell_m, index_cell_m)
@@ -296,7 +314,9 @@ def train_gp(
     )
     mu, var = loo_predictions(trained, X, y, nv, cov, expectation)
     alpha, beta = fit_pls(mu, var, y)
-    info.update({"scans": [int(scans[0]), int(scans[-1])], "n_scans": len(scans), "seed": seed})
+    info.update(
+        {"scans": [int(scans[0]), int(scans[-1])], "n_scans": len(scans), "windows": windows, "seed": seed}
+    )
     if expectation is not None:
         info["inputs"] = {"method": expectation.method, "level": expectation.level}
     return GPParams(trained, nv, alpha, beta, info)

@@ -9,7 +9,14 @@ import pytest
 
 from mapping.kernels import make_kernel
 from mapping.pls import fit_pls, loo_predictions, pls_probability
-from mapping.train import GPParams, ParamsFileError, log_marginal_likelihood, train_gp, train_hyperparameters
+from mapping.train import (
+    GPParams,
+    ParamsFileError,
+    log_marginal_likelihood,
+    train_gp,
+    train_hyperparameters,
+    training_scans,
+)
 from tests.test_mapping_core import random_beams
 
 
@@ -132,3 +139,22 @@ def test_training_uses_train_free_margin_and_the_map_keeps_its_own() -> None:
         narrow, MappingConfig(free_space={"margin_m": 0.1}, train=train, **budget), mapper="gpfol"
     )
     assert not np.allclose(same.kernel.theta, split.kernel.theta, rtol=1e-3)
+
+
+def test_training_scans_are_runs_of_consecutive_scans_spread_over_the_recording() -> None:
+    ids = np.arange(0, 2000, 2)  # 1,000 distinct scans, not contiguous numbers
+    np.testing.assert_array_equal(training_scans(ids, 50), ids[:50])  # one window: the first scans
+    picked = training_scans(ids, 50, windows=10)
+    assert picked.size == 50 and np.all(np.diff(picked) > 0) and np.isin(picked, ids).all()
+    runs = np.split(picked, np.flatnonzero(np.diff(np.searchsorted(ids, picked)) > 1) + 1)
+    assert [r.size for r in runs] == [5] * 10  # ten runs of five consecutive scans
+    assert picked[0] == ids[0] and picked[-1] == ids[-1]  # from the first scan to the last
+    np.testing.assert_array_equal(training_scans(ids[:30], 50, windows=10), ids[:30])  # fewer than asked: all
+    assert training_scans(np.r_[ids, ids], 53, windows=7).size == 53  # duplicates and uneven runs
+
+
+def test_train_gp_reads_the_scans_of_its_windows() -> None:
+    beams = random_beams(4, n_scans=40)
+    params = train_gp(beams, "se", n_scans=12, n_problems=16, maxfun=5, maxiter=5, windows=3)
+    assert params.info["n_scans"] == 12 and params.info["windows"] == 3
+    assert params.info["scans"] == [0, 39]
