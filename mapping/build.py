@@ -152,12 +152,12 @@ class MapBuilder:
             raise ConfigError(f"{self.cfg.params_file}: {exc}") from None
 
     def fit(self, beams: Beams, cov_xytheta: NDArray | None = None, seed_offset: int = 0) -> GPParams:
-        """Stored parameters if configured, else hyperparameters and PLS link learnt from the first
-        ``train.scans`` scans of ``beams``: GPFOL with ``cfg.kernel``; GPPOL with ``cfg.gppol.kernel`` on the
-        beams' input Gaussians of the laser noise (poses exact, :meth:`_train`; ``cov_xytheta`` serves the
-        held-out link's maps). The training problems' free segments stop ``cfg.train.free_margin_m`` short
-        of the endpoints if it is set (or each beam's grazing margin, kept from ``beams``, if larger).
-        ``pls_link: holdout`` refits the link on held-out scans."""
+        """Stored parameters if configured, else hyperparameters and PLS link learnt from ``train.scans``
+        scans of ``beams`` in ``train.windows`` runs spread over the recording: GPFOL with ``cfg.kernel``;
+        GPPOL with ``cfg.gppol.kernel`` on the beams' input Gaussians of the laser noise (poses exact,
+        :meth:`_train`; ``cov_xytheta`` serves the held-out link's maps). The training problems' free segments
+        stop ``cfg.train.free_margin_m`` short of the endpoints if it is set (or each beam's grazing margin,
+        kept from ``beams``, if larger). ``pls_link: holdout`` refits the link on held-out scans."""
         stored = self.stored_params()
         if stored is not None:
             return stored

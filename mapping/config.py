@@ -100,7 +100,7 @@ class ScanSelectionConfig(BaseModel):
 
 
 class TrainingConfig(BaseModel):
-    """Hyperparameter learning (eq. 9) on local problems drawn from the first scans."""
+    """Hyperparameter learning (eq. 9) on local problems drawn from runs of scans spread over a recording."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 

@@ -4,8 +4,9 @@ The log marginal likelihood (eq. 9) is maximised over the kernel's log hyperpara
 dual annealing (the paper's simulated annealing) then locally by L-BFGS-B with the analytic gradient
 ``d lml / d theta = 1/2 tr((a a^T - K^-1) dK/d theta)``, ``a = K^-1 y``.
 
-The data are a subsample drawn from the first scans, shaped like the model that is used at prediction:
-``n_problems`` query points sampled along the beams of those scans, each with its ``k_occ`` occupied and
+The data are a subsample drawn from runs of consecutive scans spread over the recording
+(:func:`training_scans`), shaped like the model that is used at prediction: ``n_problems`` query points
+sampled along the beams of those scans, each with its ``k_occ`` occupied and
 ``k_free`` free neighbours (the free points projected for that query, eqs. 13-14), in coordinates centred on
 the query. The objective is the sum of eq. (9) over these local problems, evaluated as one batched
 computation. Centring matters for the non-stationary NN kernel (eq. 7), whose behaviour depends on the
@@ -296,7 +297,7 @@ def train_gp(
             queries, k_occ, k_free, inputs.moments.subset(keep), inputs.free().subset(keep)
         )
     if X.shape[0] == 0:
-        raise ValueError(f"no training neighbourhood with {k_occ} + {k_free} neighbours in the first scans")
+        raise ValueError(f"no training neighbourhood with {k_occ} + {k_free} neighbours in its scans")
     kernel = make_kernel(kernel_name, kernel_values, kernel_bounds)
     if expectation is not None:
         expectation.check(kernel)
