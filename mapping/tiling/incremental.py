@@ -102,6 +102,7 @@ class IncrementalMap:
         self.rho_free = np.full(len(grid), np.nan)
         self.support_beams = np.zeros(len(grid), np.int64)
         self.tile_seconds = np.zeros(len(grid))
+        self.rendered = np.zeros(len(grid), dtype=bool)  # the sink holds the tile
         self.adopted = False  # the sink holds a rendering made elsewhere (adopt_rendered)
         self.cov_xytheta = None if cov_xytheta is None else np.asarray(cov_xytheta, dtype=np.float64)
         self._set_beams(beams)
@@ -122,13 +123,14 @@ class IncrementalMap:
         parameters, e.g. a run's map read back). The tiles' radii, which updates need, are computed on the
         first update (a map that is only written out never pays for them)."""
         self.adopted = True
+        self.rendered[:] = True
 
     def ensure_radii(self) -> None:
-        """Compute the support radii of tiles adopted by :meth:`adopt_rendered` (done by the first update)."""
-        if not self.adopted:
-            return
+        """Compute the support radii of the tiles rendered without them (adopted by :meth:`adopt_rendered`,
+        or rendered through one map of all beams, :func:`mapping.tiling.render.render_batched`); done by the
+        first update."""
         s = self.index.scratch()
-        for t in np.flatnonzero(np.isnan(self.rho_occ)):
+        for t in np.flatnonzero(np.isnan(self.rho_occ) & self.rendered):
             radii = self.index.tile_radii(self.rects[t], self.k_occ, self.k_free, s)
             self.rho_occ[t], self.rho_free[t] = radii
 
@@ -141,6 +143,7 @@ class IncrementalMap:
             self.rho_free[r.tile] = r.r_free_m
             self.support_beams[r.tile] = r.support_beams
             self.tile_seconds[r.tile] = r.seconds
+            self.rendered[r.tile] = True
             n += 1
             if on_tile is not None:
                 on_tile(r)

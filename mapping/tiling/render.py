@@ -107,14 +107,15 @@ def render_batched(job: RenderJob, tiles: Iterable[int]) -> Iterator[TileResult]
     A tile's support holds every beam its cells' neighbour searches can find, so this is the map that
     :func:`render_per_tile` gives, except that a cell beyond the reach of every input of a tile's support
     reads the prior there and may be solved here (to the reach test's tolerance, :mod:`mapping.reach`).
-    Each result still carries its tile's support radii and support size (incremental updates need them)."""
+    No tile has a support of its own here: the results carry NaN radii and 0 support beams, and
+    :class:`mapping.tiling.IncrementalMap` computes the radii when an update first needs them (a map that
+    is only written out never pays for them)."""
     tiles = [int(t) for t in tiles]
     if not tiles:
         return
     t0 = time.perf_counter()
     gp = job.factory(job.index.beams, job.cov_xytheta)
     build_s = time.perf_counter() - t0
-    scratch = job.index.scratch()
     start = 0
     while start < len(tiles):
         group = [tiles[start]]
@@ -132,21 +133,17 @@ def render_batched(job: RenderJob, tiles: Iterable[int]) -> Iterator[TileResult]
         share_s = (time.perf_counter() - t1 + build_s * cells / max(1, job.grid.cells)) / len(group)
         lo = 0
         for t, c in zip(group, centres, strict=True):
-            t2 = time.perf_counter()
             hi = lo + c.shape[0]
             shape = job.grid.tile_shape(t)
-            rect = job.grid.rects([t])[0]
-            r_occ, r_free = job.index.tile_radii(rect, job.k_occ, job.k_free, scratch)
-            support = job.index.support(rect, r_occ, r_free, scratch)
             yield TileResult(
                 tile=t,
                 probability=pred.probability[lo:hi].reshape(shape).astype(np.float32),
                 mean=pred.mean[lo:hi].reshape(shape).astype(np.float32),
                 variance=pred.variance[lo:hi].reshape(shape).astype(np.float32),
-                r_occ_m=r_occ,
-                r_free_m=r_free,
-                support_beams=int(support.size),
-                seconds=share_s + time.perf_counter() - t2,
+                r_occ_m=float("nan"),
+                r_free_m=float("nan"),
+                support_beams=0,
+                seconds=share_s,
             )
             lo = hi
 
