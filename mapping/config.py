@@ -110,8 +110,7 @@ class TrainingConfig(BaseModel):
         ge=1,
         le=10_000,
         description="the N scans are this many runs of consecutive scans spread evenly over the recording "
-        "(1: the first N scans). The first scans alone can be one corner of the scene: on the open campus "
-        "(freiburg-campus) they gave length scales of 0.17 m and map AUCs well below ten spread runs",
+        "(1: the first N scans, which can be one corner of the scene; docs/mapping.md)",
     )
     problems: int = Field(64, ge=1, le=100_000, description="local neighbourhoods in the training set")
     anneal_evaluations: int = Field(
