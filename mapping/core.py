@@ -406,6 +406,17 @@ def _pair_cov(SL, SLo, GL, i, j, lane, c):
     return SL[i, c, lane] + SL[j, c, lane]
 
 
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True, inline="always")
+def _girard_se(ell2, s00, s01, s11, dx, dy):
+    """Eq. (19) over sf2: ``l^2 / sqrt(det(l^2 I + S)) exp(-d^T (l^2 I + S)^-1 d / 2)`` for the packed
+    covariance ``(s00, s01, s11)`` of a difference ``d = (dx, dy)``."""
+    a00 = ell2 + s00
+    a11 = ell2 + s11
+    r = 1.0 / math.sqrt(a00 * a11 - s01 * s01)  # |L I + S|^(-1/2)
+    q = (dx * dx * a11 - 2.0 * dx * dy * s01 + dy * dy * a00) * (r * r)
+    return ell2 * r * math.exp(-0.5 * q)
+
+
 @nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
 def _informs(mode, kid, kp, X, S, n):
     """Whether one of the ``n`` training inputs (means X (n, 2) centred on the query, GPPOL's packed
@@ -422,13 +433,7 @@ def _informs(mode, kid, kp, X, S, n):
         if mode == INPUTS_POINTS:
             v = _stationary(kid, c, dx * dx + dy * dy)
         else:  # INPUTS_GIRARD, SE: eq. (19) over k(0) = sf2
-            ell2 = 1.0 / c
-            a00 = ell2 + S[i, 0]
-            a01 = S[i, 1]
-            a11 = ell2 + S[i, 2]
-            r = 1.0 / math.sqrt(a00 * a11 - a01 * a01)
-            q = (dx * dx * a11 - 2.0 * dx * dy * a01 + dy * dy * a00) * (r * r)
-            v = ell2 * r * math.exp(-0.5 * q)
+            v = _girard_se(1.0 / c, S[i, 0], S[i, 1], S[i, 2], dx, dy)
         if v >= NEGLIGIBLE_KERNEL:
             return True
     return False
@@ -445,24 +450,17 @@ def _girard_lanes(kp, XL, SL, SLo, GL, mask, n, K, ks):
     for i in range(n):
         for j in range(i):
             for lane in range(nlanes):
-                a00 = ell2 + _pair_cov(SL, SLo, GL, i, j, lane, 0)
-                a01 = _pair_cov(SL, SLo, GL, i, j, lane, 1)
-                a11 = ell2 + _pair_cov(SL, SLo, GL, i, j, lane, 2)
-                dx = XL[i, 0, lane] - XL[j, 0, lane]
-                dy = XL[i, 1, lane] - XL[j, 1, lane]
-                r = 1.0 / math.sqrt(a00 * a11 - a01 * a01)  # |L I + S|^(-1/2)
-                q = (dx * dx * a11 - 2.0 * dx * dy * a01 + dy * dy * a00) * (r * r)
-                K[i, j, lane] = sf2 * ell2 * r * math.exp(-0.5 * q) * (mask[i, lane] * mask[j, lane])
+                v = _girard_se(
+                    ell2, _pair_cov(SL, SLo, GL, i, j, lane, 0), _pair_cov(SL, SLo, GL, i, j, lane, 1),
+                    _pair_cov(SL, SLo, GL, i, j, lane, 2), XL[i, 0, lane] - XL[j, 0, lane],
+                    XL[i, 1, lane] - XL[j, 1, lane],
+                )  # fmt: skip
+                K[i, j, lane] = sf2 * v * (mask[i, lane] * mask[j, lane])
         for lane in range(nlanes):
             K[i, i, lane] = sf2 * mask[i, lane]
-            a00 = ell2 + SL[i, 0, lane]
-            a01 = SL[i, 1, lane]
-            a11 = ell2 + SL[i, 2, lane]
-            dx = XL[i, 0, lane]
-            dy = XL[i, 1, lane]
-            r = 1.0 / math.sqrt(a00 * a11 - a01 * a01)
-            q = (dx * dx * a11 - 2.0 * dx * dy * a01 + dy * dy * a00) * (r * r)
-            ks[i, lane] = sf2 * ell2 * r * math.exp(-0.5 * q) * mask[i, lane]
+            s00, s01, s11 = SL[i, 0, lane], SL[i, 1, lane], SL[i, 2, lane]
+            v = _girard_se(ell2, s00, s01, s11, XL[i, 0, lane], XL[i, 1, lane])
+            ks[i, lane] = sf2 * v * mask[i, lane]
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath=True, inline="always")
