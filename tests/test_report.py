@@ -222,6 +222,66 @@ def test_trajectory_figure_draws_every_nth_ellipse() -> None:
     assert _panel_px(with_map) == pytest.approx((1100, 300), abs=1)
 
 
+def _drawn_by_matplotlib(fig, path: Path) -> np.ndarray:
+    fig.savefig(path, dpi=fig.dpi)
+    return (matplotlib.image.imread(path)[..., :3] * 255).round().astype(np.int16)
+
+
+def _figure_kinds() -> dict:
+    """One of every run-folder figure that shows a map, with paths, closures, NaN cells, an unknown overlay
+    and a translucent map under ellipses; a 1:1 map (1100 x 300 cells) and an upscaled one (60 x 40)."""
+    layers, small = _layers((300, 1100)), _layers((40, 60), 2)
+    p = layers.probability.copy()
+    p[5:9, 5:40] = np.nan
+    holed = MapLayers(p, layers.mean, layers.variance, layers.resolution_m, layers.origin_xy_m)
+    unknown = layers.variance >= 0.99 * PRIOR_VARIANCE
+    pa = _loop(60, 15)
+    closures = np.stack([pa[[59, 55], :2], pa[[0, 2], :2]], axis=1)
+    return {
+        "probability": lambda: figures.layer_figure(holed, "probability", "p", pa[:, :2], unknown=unknown),
+        "variance": lambda: figures.layer_figure(layers, "variance", "v", prior_variance=PRIOR_VARIANCE),
+        "mean": lambda: figures.layer_figure(layers, "mean"),
+        "small": lambda: figures.layer_figure(small, "probability", unknown=small.variance > 0.8),
+        "classified": lambda: figures.classified_figure(layers, unknown=unknown),
+        "before_after": lambda: figures.before_after_figure(
+            _layers((300, 1100), 1), layers, pa[:, :2], pa[:, :2], closures
+        ),
+        "difference": lambda: figures.difference_figure(
+            _layers((300, 1100), 1), holed, "d", pa[:, :2], closures
+        ),
+        "trajectory": lambda: figures.trajectory_covariances_figure(
+            {"after": pa}, {"after": _covariances(60, 0.5)}, layers=layers
+        ),
+    }
+
+
+@pytest.mark.parametrize("kind", list(_figure_kinds()))
+def test_pasted_maps_equal_matplotlib_drawn_ones(tmp_path, kind) -> None:
+    """save_figure pastes the map images instead of letting matplotlib resample them: the PNG must be the
+    one matplotlib draws, up to rounding of the colours (a few levels on a few pixels; everywhere, by one
+    or two levels, under the translucent map of the trajectory figure)."""
+    make = _figure_kinds()[kind]
+    pasted = figures.save_figure(make(), tmp_path / "pasted.png")
+    assert figures._paste_maps(make()) is not None  # the fast path was taken
+    mine = (matplotlib.image.imread(pasted)[..., :3] * 255).round().astype(np.int16)
+    theirs = _drawn_by_matplotlib(make(), tmp_path / "drawn.png")
+    assert mine.shape == theirs.shape
+    diff = np.abs(mine - theirs).max(axis=2)
+    assert diff.max() <= 3, f"{(diff > 3).sum()} pixels differ by more than 3 levels"
+    assert diff.mean() < (1.0 if kind == "trajectory" else 0.01)  # a translucent map: rounding everywhere
+
+
+def test_figures_that_cannot_be_pasted_are_drawn(tmp_path) -> None:
+    """A figure without a map, or with an image that does not fill its panel one to one, goes through
+    matplotlib."""
+    assert figures._paste_maps(figures.trajectory_covariances_figure({"after": _loop(50, 10)})) is None
+    fig = figures.layer_figure(_layers((300, 1100)), "probability")
+    fig.axes[0].set_xlim(-200, 200)  # zoomed out: the image no longer fills its panel
+    assert figures._paste_maps(fig) is None
+    path = figures.save_figure(fig, tmp_path / "zoomed.png")
+    assert png_size(path) == tuple(round(v) for v in fig.get_size_inches() * fig.dpi)
+
+
 # ---- report -------------------------------------------------------------------------------------------
 
 
