@@ -230,12 +230,14 @@ def write_map_bag(
     ``/loop_closures`` (``visualization_msgs/MarkerArray``, latched: one LINE_LIST, a line per (2, 2)
     segment of the (C, 2, 2) ``loop_closures_xy_m``, in the frame of the first map); ``/tf``
     (``tf2_msgs/TFMessage``): one transform ``tf_trajectory.frame_id -> tf_child_frame`` per pose, at the
-    pose's stamp. ROS1 ``.bag`` or ROS2 ``.mcap`` / folder by the path. Returns messages per topic.
+    pose's stamp. ROS1 ``.bag`` or ROS2 ``.mcap`` / folder by the path, its chunks compressed (float layers
+    of a big building: a few hundred megabytes otherwise; see :func:`open_bag_writer`). Returns messages
+    per topic.
     """
     variance_full_scale = dict(variance_full_scale or {})
     occupancy = dict(occupancy or {})
     metadata = dict(metadata or {})
-    with open_bag_writer(path) as w:
+    with open_bag_writer(path, compress=True) as w:
         if tf_trajectory is not None:
             for s, xyt in zip(tf_trajectory.stamps_ns, tf_trajectory.poses_xytheta, strict=True):
                 tf = _transform_stamped(w, int(s), tf_trajectory.frame_id, tf_child_frame, xyt)

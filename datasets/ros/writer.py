@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 from rosbags import rosbag1, rosbag2
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
-from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.serde import SerdeError
 
 from datasets.errors import DatasetError, UnknownFormatError, first_line, shown, shown_name, shown_names
@@ -156,10 +156,14 @@ class BagWriter:
 
 
 @contextmanager
-def open_bag_writer(path: str | Path) -> Iterator[BagWriter]:
+def open_bag_writer(path: str | Path, compress: bool = False) -> Iterator[BagWriter]:
     """A :class:`BagWriter` on a new bag at ``path`` (kind from the suffix, see the module docstring).
 
-    The bag appears at ``path`` only when the ``with`` block ends without an exception.
+    ``compress``: compress the bag's chunks the way every reader of its format decompresses by itself, for
+    big payloads such as float map layers: an MCAP file or folder gets zstd chunks (MCAP's own chunk
+    compression, not rosbag2's file or message compression, so ``metadata.yaml`` declares none), a ROS1 bag
+    lz4 chunks; a SQLite3 bag has no chunks and stays uncompressed. The bag appears at ``path`` only when
+    the ``with`` block ends without an exception.
     """
     path = Path(path)
     kind, layout = check_output_path(path)
@@ -168,12 +172,16 @@ def open_bag_writer(path: str | Path) -> Iterator[BagWriter]:
         if kind == "ros1":
             inner = tmpdir / path.name
             raw: Any = rosbag1.Writer(inner)
+            if compress:
+                raw.set_compression(rosbag1.Writer.CompressionFormat.LZ4)
             produced = inner
         else:
             stem = path.name if layout == "folder" else path.stem
             inner = tmpdir / stem
             plugin = StoragePlugin.SQLITE3 if layout == "db3" else StoragePlugin.MCAP
             raw = rosbag2.Writer(inner, version=rosbag2.Writer.VERSION_LATEST, storage_plugin=plugin)
+            if compress and plugin == StoragePlugin.MCAP:
+                raw.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
             produced = inner if layout == "folder" else inner / f"{stem}.{layout}"
         with raw:
             writer = BagWriter(kind, raw, path)
