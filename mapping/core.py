@@ -49,6 +49,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapping.index import flat_points, flat_segments, knn_points, knn_segments, points_of, segments_of
+from mapping.vecmath import exp_nonpositive
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -111,11 +112,11 @@ def _kernel_blocks(kid, kp, X, n, K, ks, s):
 @nb.njit(cache=True, error_model="numpy", fastmath=True, inline="always")
 def _stationary(kid, c, r2):
     if kid == KERNEL_SE:
-        return math.exp(-0.5 * c * r2)
+        return exp_nonpositive(-0.5 * c * r2)
     u = c * math.sqrt(r2)
     if kid == KERNEL_MATERN32:
-        return (1.0 + u) * math.exp(-u)
-    return (1.0 + u + u * u / 3.0) * math.exp(-u)
+        return (1.0 + u) * exp_nonpositive(-u)
+    return (1.0 + u + u * u / 3.0) * exp_nonpositive(-u)
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
@@ -401,9 +402,9 @@ def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, SLo, 
 def _pair_cov(SL, SLo, GL, i, j, lane, c):
     """Entry ``c`` of the packed covariance of ``x_i - x_j``: ``Sigma_i + Sigma_j`` for inputs of different
     scans, the laser noise's alone for two of one scan (a rigid motion keeps their distance)."""
-    if GL[i, lane] == GL[j, lane]:
-        return SLo[i, c, lane] + SLo[j, c, lane]
-    return SL[i, c, lane] + SL[j, c, lane]
+    one_scan = SLo[i, c, lane] + SLo[j, c, lane]
+    two_scans = SL[i, c, lane] + SL[j, c, lane]
+    return one_scan if GL[i, lane] == GL[j, lane] else two_scans  # a select, not a branch: vectorised
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True, inline="always")
@@ -414,7 +415,7 @@ def _girard_se(ell2, s00, s01, s11, dx, dy):
     a11 = ell2 + s11
     r = 1.0 / math.sqrt(a00 * a11 - s01 * s01)  # |L I + S|^(-1/2)
     q = (dx * dx * a11 - 2.0 * dx * dy * s01 + dy * dy * a00) * (r * r)
-    return ell2 * r * math.exp(-0.5 * q)
+    return ell2 * r * exp_nonpositive(-0.5 * q)
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
