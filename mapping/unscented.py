@@ -36,9 +36,11 @@ default. Not captured by any scaling: the product ``var_r var_b`` of independent
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
@@ -193,29 +195,96 @@ def beam_moments(
     var_r = np.broadcast_to(np.asarray(range_var_m2, dtype=np.float64), (M,))
     var_b = np.broadcast_to(np.asarray(bearing_var_rad2, dtype=np.float64), (M,))
     m = np.zeros(3) if laser_in_base_xytheta is None else np.asarray(laser_in_base_xytheta, np.float64)
-    n = STATE_DIM
-    c, wm, wc = ut.weights(n)
-    # sigma points (eq. 24) of the 5-D state with r = 0: the range part is carried by dr below
-    root = np.zeros((M, n, n))
-    root[:, 0, 0] = np.sqrt(np.maximum(var_r, 0.0))
-    root[:, 1, 1] = np.sqrt(np.maximum(var_b, 0.0))
-    root[:, 2:, 2:] = psd_sqrt(pcov)
-    cols = c * np.swapaxes(root, 1, 2)  # (M, n, n): row i = column i of the root
-    mean = np.concatenate([np.zeros((M, 1)), b[:, None], pose], axis=1)
-    chi = np.concatenate([mean[:, None], mean[:, None] + cols, mean[:, None] - cols], axis=1)  # (M, 2n+1, 5)
-    dr = chi[..., 0]  # the range offset of each sigma point (+-c sigma_r or 0)
-    th = chi[..., 4]
-    ang = th + m[2] + chi[..., 1]
-    u = np.stack([np.cos(ang), np.sin(ang)], -1)  # (M, K, 2)
-    # positions relative to the mean base position: no cancellation of large world coordinates below
-    rel_pose = np.stack([chi[..., 2] - pose[:, None, 0], chi[..., 3] - pose[:, None, 1], th], -1)
-    A = se2.transform_points(rel_pose, m[:2])  # laser origin of each sigma point
-    P = A + dr[..., None] * u  # image of the sigma point at d = 0; at d it is P + d u (eq. 26)
-    a = np.einsum("k,mkp->mp", wm, P) + pose[:, :2]  # eq. (27), the parts constant and linear in d
-    bb = np.einsum("k,mkp->mp", wm, u)
-    e = P - (a - pose[:, :2])[:, None]
-    f = u - bb[:, None]
-    ee = np.einsum("k,mkp,mkq->mpq", wc, e, e)  # eq. (28), by powers of d
-    ef = np.einsum("k,mkp,mkq->mpq", wc, e, f)
-    ff = np.einsum("k,mkp,mkq->mpq", wc, f, f)
-    return BeamMoments(a=a, b=bb, c0=pack_cov(ee), c1=pack_cov(ef + np.swapaxes(ef, 1, 2)), c2=pack_cov(ff))
+    c, wm, wc = ut.weights(STATE_DIM)
+    out = tuple(np.empty((M, k)) for k in (2, 2, 3, 3, 3))
+    _beam_moments(
+        b,
+        np.ascontiguousarray(pose),
+        np.ascontiguousarray(psd_sqrt(pcov)),
+        np.sqrt(np.maximum(var_r, 0.0)),
+        np.sqrt(np.maximum(var_b, 0.0)),
+        np.ascontiguousarray(m),
+        c,
+        wm,
+        wc,
+        *out,
+    )
+    return BeamMoments(*out)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _beam_moments(bearing, pose, pose_root, sd_r, sd_b, mount, c, wm, wc, a, bb, c0, c1, c2):
+    """The coefficients of :func:`beam_moments`, one beam at a time: its 2n + 1 sigma points (eq. 24) of the
+    5-D state with r = 0 (the root of ``blockdiag(var_r, var_b, Sigma_pose)`` is ``blockdiag(sd_r, sd_b,
+    pose_root)``), each point's image ``P_k`` at d = 0 and beam direction ``u_k`` (eq. 26; positions
+    relative to the mean base position, so that large world coordinates do not cancel), then eqs. (27)-(28)
+    by powers of d into ``a``, ``bb`` (M, 2) and the packed ``c0``, ``c1``, ``c2`` (M, 3)."""
+    n = 5
+    nk = 2 * n + 1
+    px = np.empty(nk)
+    py = np.empty(nk)
+    ux = np.empty(nk)
+    uy = np.empty(nk)
+    step = np.zeros(n)
+    for i in range(bearing.shape[0]):
+        for k in range(nk):
+            for j in range(n):
+                step[j] = 0.0
+            if k > 0:  # column j of the root, +c for k = 1..n, -c for k = n+1..2n
+                j = (k - 1) % n
+                sign = c if k <= n else -c
+                if j == 0:
+                    step[0] = sign * sd_r[i]
+                elif j == 1:
+                    step[1] = sign * sd_b[i]
+                else:
+                    for r in range(3):
+                        step[2 + r] = sign * pose_root[i, r, j - 2]
+            dr = step[0]
+            th = pose[i, 2] + step[4]
+            ang = th + mount[2] + bearing[i] + step[1]
+            ux[k] = math.cos(ang)
+            uy[k] = math.sin(ang)
+            ct = math.cos(th)
+            st = math.sin(th)
+            px[k] = step[2] + ct * mount[0] - st * mount[1] + dr * ux[k]
+            py[k] = step[3] + st * mount[0] + ct * mount[1] + dr * uy[k]
+        sx = 0.0
+        sy = 0.0
+        vx = 0.0
+        vy = 0.0
+        for k in range(nk):
+            sx += wm[k] * px[k]
+            sy += wm[k] * py[k]
+            vx += wm[k] * ux[k]
+            vy += wm[k] * uy[k]
+        a[i, 0] = sx + pose[i, 0]
+        a[i, 1] = sy + pose[i, 1]
+        bb[i, 0] = vx
+        bb[i, 1] = vy
+        e00 = e01 = e11 = g00 = g01 = g10 = g11 = f00 = f01 = f11 = 0.0
+        for k in range(nk):
+            ex = px[k] - sx
+            ey = py[k] - sy
+            fx = ux[k] - vx
+            fy = uy[k] - vy
+            w = wc[k]
+            e00 += w * ex * ex
+            e01 += w * ex * ey
+            e11 += w * ey * ey
+            g00 += w * ex * fx
+            g01 += w * ex * fy
+            g10 += w * ey * fx
+            g11 += w * ey * fy
+            f00 += w * fx * fx
+            f01 += w * fx * fy
+            f11 += w * fy * fy
+        c0[i, 0] = e00
+        c0[i, 1] = e01
+        c0[i, 2] = e11
+        c1[i, 0] = 2.0 * g00
+        c1[i, 1] = g01 + g10
+        c1[i, 2] = 2.0 * g11
+        c2[i, 0] = f00
+        c2[i, 1] = f01
+        c2[i, 2] = f11
