@@ -29,7 +29,6 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from mapping.kernels import Kernel
 
@@ -132,6 +131,73 @@ def _mark(starts, ends, cls, x0, y0, cell, nx, ny, out):
                 out[cls[i], iy, ix] = True
 
 
+def within_distance(marked: NDArray[np.bool_], radius_cells: float) -> NDArray[np.bool_]:
+    """(H, W) bool: the cells whose centre lies within ``radius_cells`` cell widths (Euclidean) of the
+    centre of a ``marked`` cell, i.e. ``scipy.ndimage.distance_transform_edt(~marked) <= radius_cells``,
+    computed exactly in squared cell units by the separable transform of Felzenszwalb and Huttenlocher
+    (2012), in parallel over columns, then rows."""
+    m = np.ascontiguousarray(marked, dtype=np.bool_)
+    if m.ndim != 2:
+        raise ValueError(f"within_distance needs a 2-D mask, not {m.shape}")
+    if not (m.any() and radius_cells >= 0):  # nothing marked, or a negative or NaN radius
+        return np.zeros(m.shape, dtype=bool)
+    if not np.isfinite(radius_cells):
+        return np.ones(m.shape, dtype=bool)
+    return _within_distance(m, float(radius_cells) ** 2)
+
+
+@nb.njit(cache=True, error_model="numpy", parallel=True)
+def _within_distance(marked, radius2):
+    h, w = marked.shape
+    big = float(h * h + w * w + 1)  # beyond every distance on the raster
+    col = np.empty((h, w))  # squared distance to the nearest marked cell of the same column
+    for j in nb.prange(w):
+        last = -1
+        for i in range(h):
+            if marked[i, j]:
+                last = i
+            col[i, j] = big if last < 0 else float((i - last) * (i - last))
+        last = -1
+        for i in range(h - 1, -1, -1):
+            if marked[i, j]:
+                last = i
+            if last >= 0:
+                col[i, j] = min(col[i, j], float((last - i) * (last - i)))
+    out = np.empty((h, w), dtype=np.bool_)
+    for i in nb.prange(h):
+        # lower envelope of the parabolas (x - q)^2 + col[i, q] along the row
+        v = np.empty(w, np.int64)
+        z = np.empty(w + 1)
+        f = col[i]
+        k = 0
+        v[0] = 0
+        z[0] = -np.inf
+        z[1] = np.inf
+        for q in range(1, w):
+            while True:
+                p = v[k]
+                s = ((f[q] + q * q) - (f[p] + p * p)) / (2.0 * (q - p))
+                if s <= z[k] and k > 0:
+                    k -= 1
+                    continue
+                if s <= z[k]:  # k == 0: q replaces the first parabola
+                    v[0] = q
+                    z[1] = np.inf
+                    break
+                k += 1
+                v[k] = q
+                z[k] = s
+                z[k + 1] = np.inf
+                break
+        k = 0
+        for x in range(w):
+            while z[k + 1] < x:
+                k += 1
+            p = v[k]
+            out[i, x] = (x - p) * (x - p) + f[p] <= radius2
+    return out
+
+
 @dataclass(frozen=True)
 class ReachMask:
     """``near`` (H, W) bool on a raster of ``cell_m`` whose lower-left corner is ``origin_xy_m``: True where
@@ -222,7 +288,7 @@ def _class_near(
         starts, ends, np.zeros(starts.shape[0], np.int64), float(lo[0]), float(lo[1]), coarse, cx, cy, marked
     )
     margin = coarse * (math.sqrt(2.0) + 0.25) + (cell * math.sqrt(0.5) if coarse > cell else 0.0)
-    near = ndimage.distance_transform_edt(~marked[0]) * coarse <= reach_m + margin
+    near = within_distance(marked[0], (reach_m + margin) / coarse)
     if coarse == cell:
         return near
     cols = np.minimum(((np.arange(nx) + 0.5) * cell / coarse).astype(np.int64), cx - 1)
