@@ -50,7 +50,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from mapping.exports import UNKNOWN_VARIANCE_FRACTION, Classification, MapLayers
-from mapping.raster import GridGeometry, in_grid, segment_walk, walk_next
+from mapping.raster import GridGeometry, in_grid, segment_walk, squared_distances_cells, walk_next
 from mapping.train import GPParams
 
 if TYPE_CHECKING:
@@ -281,7 +281,7 @@ def candidate_poses(
     res = layers.resolution_m
     h, w = knowledge.free.shape
     if knowledge.occupied.any():
-        clear_m = ndimage.distance_transform_edt(~knowledge.occupied) * res
+        clear_m = np.sqrt(squared_distances_cells(knowledge.occupied)) * res
     else:
         clear_m = np.full(knowledge.occupied.shape, np.inf)
     ok = knowledge.free & (clear_m >= settings.clearance_m)
@@ -356,25 +356,43 @@ def variance_reduction_per_cell(variance: FloatArray, noise_var: float) -> Float
     return v * v / (v + noise_var)
 
 
+@nb.njit(cache=True, parallel=True)
+def _cast_scans_parallel(poses, offsets, range_max, grid, blocking, cell_gain, chunks):
+    """:func:`_cast_scans` of the (N, 3) poses in ``chunks`` parallel runs, each with its own scratch."""
+    n = poses.shape[0]
+    gains = np.zeros(n)
+    for c in nb.prange(chunks):
+        lo = c * n // chunks
+        hi = (c + 1) * n // chunks
+        seen_by = np.zeros(blocking.shape, np.int32)
+        gains[lo:hi] = _cast_scans(poses[lo:hi], offsets, range_max, grid, blocking, cell_gain, seen_by)
+    return gains
+
+
 def _scan(
     poses_xytheta: FloatArray,
     layers: MapLayers,
     occupied: BoolArray,
     cell_gain: FloatArray,
     laser: LaserModel,
-) -> tuple[FloatArray, NDArray[np.int64]]:
+    seen: bool = True,
+) -> tuple[FloatArray, NDArray[np.int64] | None]:
+    """The gains of the poses and, with ``seen``, which pose last saw each cell (:func:`_cast_scans`);
+    without, the poses are scanned in parallel and no such raster is kept (None)."""
     poses = np.ascontiguousarray(np.asarray(poses_xytheta, dtype=np.float64).reshape(-1, 3))
-    seen_by = np.zeros(occupied.shape, np.int64)
-    gains = _cast_scans(
+    args = (
         poses,
         np.ascontiguousarray(laser.beam_offsets_rad()),
         float(laser.range_max_m),
         _grid_of(layers),
         np.ascontiguousarray(occupied, dtype=np.bool_),
         np.ascontiguousarray(cell_gain, dtype=np.float64),
-        seen_by,
     )
-    return gains, seen_by
+    if not seen:
+        chunks = max(1, min(poses.shape[0], nb.get_num_threads()))
+        return _cast_scans_parallel(*args, chunks), None
+    seen_by = np.zeros(occupied.shape, np.int64)
+    return _cast_scans(*args, seen_by), seen_by
 
 
 def _effective_variance(layers: MapLayers, prior: float) -> FloatArray:
@@ -394,7 +412,7 @@ def expected_variance_reduction(
     map-frame poses (m, m, rad), rays stopped by the (H, W) ``occupied`` cells (module docstring)."""
     prior = params.prior_variance
     gain = variance_reduction_per_cell(_effective_variance(layers, prior), params.noise_var)
-    return _scan(poses_xytheta, layers, occupied, gain, laser or LaserModel())[0]
+    return _scan(poses_xytheta, layers, occupied, gain, laser or LaserModel(), seen=False)[0]
 
 
 def visible_cells(
@@ -436,7 +454,7 @@ def plan_exploration(
     for k in range(min(s.n_views, candidates.shape[0])):
         cell_gain = variance_reduction_per_cell(current, noise)
         if k == 0:
-            first, _ = _scan(candidates, layers, knowledge.occupied, cell_gain, s.laser)
+            first, _ = _scan(candidates, layers, knowledge.occupied, cell_gain, s.laser, seen=False)
             bound = first.copy()
             fresh[:] = True
         else:
@@ -448,7 +466,9 @@ def plan_exploration(
                     break
                 stale = np.flatnonzero(~fresh)
                 batch = stale[np.argsort(-bound[stale], kind="stable")[:LAZY_BATCH]]
-                bound[batch], _ = _scan(candidates[batch], layers, knowledge.occupied, cell_gain, s.laser)
+                bound[batch], _ = _scan(
+                    candidates[batch], layers, knowledge.occupied, cell_gain, s.laser, seen=False
+                )
                 fresh[batch] = True
         best = int(np.argmax(bound))
         if not bound[best] > 0:

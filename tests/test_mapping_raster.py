@@ -3,11 +3,13 @@ along a segment (mapping.raster) and the ring search of the k-NN (mapping.index)
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from mapping.index import _segment_cells, rings_next, rings_start
-from mapping.raster import GridGeometry, segment_walk, walk_next
+from mapping.raster import GridGeometry, segment_walk, squared_distances_cells, walk_next, within_distance
 
 GRID = GridGeometry.of(-1.3, 0.7, 0.37, 23, 17)
 
@@ -94,3 +96,23 @@ def test_the_ring_search_stops_once_the_kth_distance_lies_within_the_rings_searc
             last = rings.r
             rings = rings_next(GRID, rings, True, (kth_cells * cell) ** 2)
         assert last == last_ring, kth_cells
+
+
+def test_within_distance_equals_scipys_distance_transform() -> None:
+    """The compiled distance transform against ``scipy.ndimage.distance_transform_edt`` on random masks
+    (sparse and dense, single rows and columns): the squared distances exactly, and the thresholded mask at
+    radii on and between the integer distances."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(0)
+    cases = (((50, 70), 0.02), ((300, 200), 0.001), ((1, 50), 0.1), ((40, 1), 0.1), ((90, 90), 0.3))
+    for shape, density in cases:
+        marked = rng.random(shape) < density
+        marked[rng.integers(shape[0]), rng.integers(shape[1])] = True
+        distance = ndimage.distance_transform_edt(~marked)
+        np.testing.assert_array_equal(np.sqrt(squared_distances_cells(marked)), distance)
+        for radius in (0.0, 1.0, 1.5, math.sqrt(8.0), 3.3, 7.0, 40.0):
+            np.testing.assert_array_equal(within_distance(marked, radius), distance <= radius)
+    empty = np.zeros((5, 6), dtype=bool)
+    assert not within_distance(empty, 3.0).any() and not within_distance(empty, np.inf).any()
+    assert within_distance(~empty, np.inf).all() and not within_distance(~empty, -1.0).any()

@@ -22,7 +22,6 @@ from mapping.reach import (
     se_girard_reach_m,
     spread_factor,
     unknown_ratio,
-    within_distance,
 )
 from mapping.train import GPParams
 from pipeline import evaluate_map as em
@@ -207,21 +206,3 @@ def test_an_unknown_rule_leaves_the_unknown_cells_unknown_and_the_known_ones_as_
     with pytest.raises(ValueError, match="unknown_variance_fraction"):
         unknown_ratio(0.1, 0.9, 30, 1.5)
     assert unknown_ratio(0.1, 0.9, 30, None) == 0.0 and unknown_ratio(0.1, 0.9, 30, 1.0) == 0.0
-
-
-def test_within_distance_equals_scipys_distance_transform() -> None:
-    """The compiled thresholded transform against ``scipy.ndimage.distance_transform_edt`` on random masks
-    (sparse and dense, single rows and columns), radii on and between the integer distances."""
-    from scipy import ndimage
-
-    rng = np.random.default_rng(0)
-    cases = (((50, 70), 0.02), ((300, 200), 0.001), ((1, 50), 0.1), ((40, 1), 0.1), ((90, 90), 0.3))
-    for shape, density in cases:
-        marked = rng.random(shape) < density
-        marked[rng.integers(shape[0]), rng.integers(shape[1])] = True
-        distance = ndimage.distance_transform_edt(~marked)
-        for radius in (0.0, 1.0, 1.5, math.sqrt(8.0), 3.3, 7.0, 40.0):
-            np.testing.assert_array_equal(within_distance(marked, radius), distance <= radius)
-    empty = np.zeros((5, 6), dtype=bool)
-    assert not within_distance(empty, 3.0).any() and not within_distance(empty, np.inf).any()
-    assert within_distance(~empty, np.inf).all() and not within_distance(~empty, -1.0).any()
