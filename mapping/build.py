@@ -21,7 +21,7 @@ from datasets.types import ScanSequence
 from mapping.beams import Beams, beams_from_scan_sequence, compose_laser_poses, select_scans_by_motion
 from mapping.calibration import holdout_link
 from mapping.config import MappingConfig
-from mapping.exports import UNKNOWN_VARIANCE_FRACTION, MapLayers
+from mapping.exports import MapLayers
 from mapping.gpmap import GPOccupancyMap
 from mapping.gppol import GaussianInputs, SensorNoise, input_moments
 from mapping.grid import OccupancyGrid
@@ -53,27 +53,18 @@ class MapBuilder:
 
     Pose covariances, where a method takes them, are (N, 3, 3) world-frame covariances of the base poses
     (x, y, theta in m, m, rad) of the N scans of the recording, indexed by ``beams.scan_index``; None means
-    exact poses. GPFOL ignores them. ``unknown_variance_fraction``: the export's rule for unknown cells
-    (``export.unknown_variance_fraction``), by which the maps leave unsolved the places no neighbour can
-    make known (:class:`~mapping.gpmap.GPOccupancyMap`). Picklable (Dask ships it to its workers inside
-    :class:`GPMapFactory`).
+    exact poses. GPFOL ignores them. Picklable (Dask ships it to its workers inside :class:`GPMapFactory`).
     """
 
     cfg: MappingConfig
     mapper: str
-    unknown_variance_fraction: float = UNKNOWN_VARIANCE_FRACTION
 
     @classmethod
-    def from_config(
-        cls,
-        cfg: MappingConfig,
-        mapper: str | None = None,
-        unknown_variance_fraction: float = UNKNOWN_VARIANCE_FRACTION,
-    ) -> MapBuilder:
+    def from_config(cls, cfg: MappingConfig, mapper: str | None = None) -> MapBuilder:
         """The builder of ``mapper`` (default ``cfg.mapper``); ConfigError if the mapper is unknown."""
         mapper = mapper or cfg.mapper
         check_mapper(mapper)
-        return cls(cfg, mapper, float(unknown_variance_fraction))
+        return cls(cfg, mapper)
 
     # -- beams ------------------------------------------------------------------------------------------
 
@@ -252,14 +243,7 @@ class MapBuilder:
         inputs = self.gaussian_inputs(beams, cov_xytheta, params.kernel) if self.mapper == "gppol" else None
         try:
             return GPOccupancyMap(
-                beams,
-                params,
-                cfg.k_occupied,
-                cfg.k_free,
-                cfg.jitter,
-                cfg.index_cell_m,
-                inputs=inputs,
-                unknown_variance_fraction=self.unknown_variance_fraction,
+                beams, params, cfg.k_occupied, cfg.k_free, cfg.jitter, cfg.index_cell_m, inputs=inputs
             )
         except ValueError as exc:
             raise MappingError(f"cannot build the {self.mapper.upper()} map: {exc}") from None

@@ -11,7 +11,7 @@ through the neighbour search (:func:`mapping.index.knn_points`, :func:`mapping.i
 warm-started from the previous query's neighbours) and gets its training set, centred on the query
 (``_training_inputs``; GPPOL, section 3.6: ``_gaussian_inputs``, the means and 2x2 covariances of the inputs),
 copied into one of LANES lanes, unless no input informs the query (``_informs``: every entry of ``k*`` below
-``LocalGP.negligible`` of ``k(0)``, e.g. far from precise data yet within the reach of a distant,
+:data:`NEGLIGIBLE_KERNEL` of ``k(0)``, e.g. far from precise data yet within the reach of a distant,
 metres-uncertain scan): its lane stays empty and it reads the prior. Then LANES queries are solved together,
 the lane index innermost so that LLVM vectorises the loops: the kernel blocks ``K``, ``k*``
 (``_kernel_lanes``; GPPOL: the kernel integrated over the input distributions, eq. 19 or eq. 23,
@@ -61,9 +61,9 @@ KERNEL_MATERN52 = 3
 
 SQRT2 = math.sqrt(2.0)
 
-#: The least k(x*, x_i) / k(0) below which a training input does not inform the query. A query whose
-#: neighbours all lie below ``LocalGP.negligible`` (this or, for a map that knows its unknown rule, the
-#: larger ratio of :func:`mapping.reach.unknown_ratio`) reads the prior without a solve (``_informs``).
+#: k(x*, x_i) / k(0) below which a training input does not inform the query. A query whose neighbours all
+#: lie below it reads the prior without a solve (``_informs``); :mod:`mapping.reach` skips the places beyond
+#: every input's reach by the same tolerance.
 NEGLIGIBLE_KERNEL = 1e-5
 
 
@@ -419,9 +419,9 @@ def _girard_se(ell2, s00, s01, s11, dx, dy):
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
-def _informs(mode, kid, kp, X, S, n, negligible):
+def _informs(mode, kid, kp, X, S, n):
     """Whether one of the ``n`` training inputs (means X (n, 2) centred on the query, GPPOL's packed
-    covariances S (n, 3)) has ``k(x*, x_i) >= negligible k(0)``. If none has, every entry of k* is
+    covariances S (n, 3)) has ``k(x*, x_i) >= NEGLIGIBLE_KERNEL k(0)``. If none has, every entry of k* is
     negligible: the mean (eq. 2) and the variance reduction (eq. 3) vanish and the query reads the prior.
     Only the stationary kernels with a closed form are checked (exact inputs, eq. 19); the NN kernel does not
     decay and the quadrature modes are solved as they are (True)."""
@@ -435,7 +435,7 @@ def _informs(mode, kid, kp, X, S, n, negligible):
             v = _stationary(kid, c, dx * dx + dy * dy)
         else:  # INPUTS_GIRARD, SE: eq. (19) over k(0) = sf2
             v = _girard_se(1.0 / c, S[i, 0], S[i, 1], S[i, 2], dx, dy)
-        if v >= negligible:
+        if v >= NEGLIGIBLE_KERNEL:
             return True
     return False
 
@@ -575,9 +575,8 @@ def _noisy_kernel_lanes(mode, kid, kp, XL, SL, SLo, GL, mask, n, K, ks, gz, gw, 
 class LocalGP(NamedTuple):
     """The local GP of every query: ``k_occ`` + ``k_free`` neighbours, the kernel (``kernel_id``, and its
     ``kernel_params`` as :meth:`mapping.kernels.Kernel.packed` gives them), the noise variance, the jitter of
-    a failed factorisation's retries, the PLS link ``alpha``, ``beta``, ``chunk``, how many queries one
-    parallel task takes (its scratch is allocated once), and ``negligible``, the k* / k(0) below which a
-    query's neighbours do not inform it (``_informs``)."""
+    a failed factorisation's retries, the PLS link ``alpha``, ``beta``, and ``chunk``, how many queries one
+    parallel task takes (its scratch is allocated once)."""
 
     k_occ: int
     k_free: int
@@ -588,18 +587,17 @@ class LocalGP(NamedTuple):
     alpha: float
     beta: float
     chunk: int
-    negligible: float
 
     @classmethod
     def of(
         cls, k_occ: int, k_free: int, kernel_id: int, kernel_params: FloatArray, noise_var: float,
-        jitter: float, alpha: float, beta: float, chunk: int = 256, negligible: float = NEGLIGIBLE_KERNEL,
+        jitter: float, alpha: float, beta: float, chunk: int = 256,
     ) -> LocalGP:  # fmt: skip
         """The tuple with normalised types (one compiled specialisation for all maps)."""
         kp = np.ascontiguousarray(kernel_params, dtype=np.float64)
         return cls(
             int(k_occ), int(k_free), int(kernel_id), kp, float(noise_var), float(jitter), float(alpha),
-            float(beta), int(chunk), max(float(negligible), NEGLIGIBLE_KERNEL),
+            float(beta), int(chunk),
         )  # fmt: skip
 
 
@@ -852,7 +850,7 @@ def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean,
                 n = _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y)
             else:
                 n = _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, SLo1, G1, y)
-            if not _informs(mode, gp.kernel_id, gp.kernel_params, X, S, n, gp.negligible):
+            if not _informs(mode, gp.kernel_id, gp.kernel_params, X, S, n):
                 continue  # an empty lane: the prior, without a solve
             if mode != INPUTS_POINTS:
                 for i in range(n):

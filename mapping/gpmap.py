@@ -25,14 +25,12 @@ from mapping.exports import MapLayers
 from mapping.gppol import GaussianInputs
 from mapping.neighbours import BeamIndex
 from mapping.reach import (
-    REACH_TOLERANCE,
     ReachMask,
     kernel_reach_m,
     largest_eigenvalue,
     reach_mask,
     se_girard_reach_m,
     spread_factor,
-    unknown_ratio,
 )
 from mapping.train import GPParams
 
@@ -102,9 +100,7 @@ class GPOccupancyMap:
     """GP map over ``beams`` with learnt ``params``; ``k_occ`` + ``k_free`` neighbours per query.
 
     ``inputs`` (:class:`mapping.gppol.GaussianInputs`, the beams' input Gaussians) makes it GPPOL; without
-    it the training inputs are points (GPFOL). ``unknown_variance_fraction``: the rule by which the map's
-    user calls a cell unknown (variance above this fraction of the prior); given, the places no neighbour
-    can make known read the prior unsolved (:func:`mapping.reach.unknown_ratio`)."""
+    it the training inputs are points (GPFOL)."""
 
     def __init__(
         self,
@@ -116,16 +112,9 @@ class GPOccupancyMap:
         index_cell_m: float | None = None,
         chunk: int = 256,
         inputs: GaussianInputs | None = None,
-        unknown_variance_fraction: float | None = None,
     ) -> None:
         self.beams = beams
         self.params = params
-        #: k* / k(0) below which a query's neighbours cannot make it known (0: no unknown rule given)
-        self.unknown_ratio = (
-            unknown_ratio(params.noise_var, params.prior_variance, k_occ + k_free, unknown_variance_fraction)
-            if params.kernel.stationary
-            else 0.0
-        )
         self.k_occ = int(k_occ)
         self.k_free = int(k_free)
         self.jitter = float(jitter)
@@ -171,8 +160,7 @@ class GPOccupancyMap:
         return self._reach
 
     def _reach_mask(self) -> ReachMask | None:
-        tolerance = max(self.unknown_ratio, REACH_TOLERANCE)
-        r0 = kernel_reach_m(self.params.kernel, tolerance)
+        r0 = kernel_reach_m(self.params.kernel)
         if r0 is None or len(self.beams) == 0:
             return None
         idx = self.index
@@ -193,7 +181,7 @@ class GPOccupancyMap:
             ends = np.concatenate([occ[:, :2], seg[:, :2] + free_len[:, None] * seg[:, 2:4]])
             lam = np.concatenate([largest_eigenvalue(occ[:, 2:5]), np.maximum(seg_var, 0.0)])
             if self._inputs.mode == INPUTS_GIRARD:
-                reach = se_girard_reach_m(self.params.kernel.as_dict()["length_scale"], lam, tolerance)
+                reach = se_girard_reach_m(self.params.kernel.as_dict()["length_scale"], lam)
             else:
                 c = spread_factor(float(np.max(np.linalg.norm(self._inputs.nodes, axis=1))))
                 reach = r0 + c * np.sqrt(lam)
@@ -249,9 +237,8 @@ class GPOccupancyMap:
         kid, kp = self.params.kernel.packed()
         p = self.params
         gp = LocalGP.of(
-            self.k_occ, self.k_free, kid, kp, p.noise_var, self.jitter, p.alpha, p.beta, self.chunk,
-            self.unknown_ratio,
-        )  # fmt: skip
+            self.k_occ, self.k_free, kid, kp, p.noise_var, self.jitter, p.alpha, p.beta, self.chunk
+        )
         predict_batch(pts, self.index.points, self.index.segments, gp, self._inputs, mean, var, prob)
         if order is not None:
             inv = np.empty_like(order)

@@ -15,10 +15,6 @@ the expected kernel is at most ``l / sqrt(l^2 + lambda) exp(-d^2 / (2 (l^2 + lam
 is what the map uses (:func:`se_girard_reach_m`: an input spread over metres reaches little); a quadrature
 rule puts its nodes at most ``|z|max sqrt(lambda)`` from the mean: ``c`` is that (:func:`spread_factor`).
 The neural-network kernel (eq. 7) does not decay: its maps keep every cell (no mask).
-
-A map that knows its rule for *unknown* cells reaches less far: an input whose kernel stays below
-:func:`unknown_ratio` of ``k(0)`` everywhere beyond some distance cannot make a place there known, so the
-reach is taken at that ratio when it exceeds :data:`REACH_TOLERANCE`.
 """
 
 from __future__ import annotations
@@ -43,27 +39,6 @@ REACH_TOLERANCE = 1e-4
 REACH_CLASS_RATIO = 1.2
 #: ... and at most this many classes (the ratio grows where the reaches span more).
 REACH_CLASSES = 16
-
-
-def unknown_ratio(
-    noise_var: float, signal_var: float, neighbours: int, unknown_variance_fraction: float | None
-) -> float:
-    """The k(x*, x_i) / k(0) below which ``neighbours`` training inputs cannot make a query known: 0 when
-    no unknown rule is given (None), else ``sqrt((1 - f) sigma_n^2 / (n k(0)))``.
-
-    A map calls a cell *unknown* when its variance exceeds ``f`` (``unknown_variance_fraction``) of the
-    prior ``k(0)`` (:class:`mapping.exports.Classification`). The variance reduction of eq. (3),
-    ``k*^T (K + sigma_n^2 I)^-1 k*``, is at most ``|k*|^2 / sigma_n^2`` (K is positive semi-definite),
-    and with every entry of k* below ``r k(0)`` at most ``n r^2 k(0)^2 / sigma_n^2``: below ``(1 - f) k(0)``
-    for ``r`` below this ratio. Such a query is unknown whatever its neighbours say, so the map gives it the
-    prior (mean 0, variance k(0)) unsolved: the unknown cells are the same, the known ones unchanged, and
-    p(occ) where no beam makes a place known is the prior's, not a faint extrapolation."""
-    if unknown_variance_fraction is None:
-        return 0.0
-    f = float(unknown_variance_fraction)
-    if not 0.0 < f <= 1.0:
-        raise ValueError(f"unknown_variance_fraction must be in (0, 1], got {f}")
-    return math.sqrt((1.0 - f) * float(noise_var) / (max(int(neighbours), 1) * float(signal_var)))
 
 
 def kernel_reach_m(kernel: Kernel, tolerance: float = REACH_TOLERANCE) -> float | None:

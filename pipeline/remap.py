@@ -207,7 +207,7 @@ def remap_run(
         and config.scale.tile_cells == run_config.scale.tile_cells
     )
     laser = stored.laser_in_base_xytheta
-    builder = MapBuilder.from_config(cfg, unknown_variance_fraction=config.export.unknown_variance_fraction)
+    builder = MapBuilder.from_config(cfg)
     selected = builder.select_scans(odo_poses, laser)
     with (
         stage_boundary("writing", out_dir, name_known_errors=False),

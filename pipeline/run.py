@@ -108,7 +108,7 @@ def build_maps(
     (:attr:`mapping.gpmap.GPOccupancyMap.last_query_stats`).
     """
     cfg = config.mapping
-    builder = MapBuilder.from_config(cfg, unknown_variance_fraction=config.export.unknown_variance_fraction)
+    builder = MapBuilder.from_config(cfg)
     if selected is None:
         selected = builder.select_scans(next(iter(trajectories.values()))[0], laser_in_base)
     beams = {

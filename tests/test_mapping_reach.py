@@ -21,7 +21,6 @@ from mapping.reach import (
     reach_mask,
     se_girard_reach_m,
     spread_factor,
-    unknown_ratio,
 )
 from mapping.train import GPParams
 from pipeline import evaluate_map as em
@@ -165,44 +164,3 @@ def test_the_nn_kernel_solves_every_query(intel_beams) -> None:
     beams, _ = intel_beams
     gp = GPOccupancyMap(beams, GPParams(make_kernel("nn", (0.9, 3.0, 4.0)), 0.05, 6.0, -0.4), 15, 15)
     assert gp.reach() is None
-
-
-@pytest.mark.parametrize("gaussian", [True, False])
-def test_an_unknown_rule_leaves_the_unknown_cells_unknown_and_the_known_ones_as_they_were(
-    intel_beams, gaussian
-) -> None:
-    """With the export's rule for unknown cells (variance above 0.9 of the prior) the map skips the places
-    no neighbour can make known (:func:`unknown_ratio`): on the Intel lab's beams (GPPOL with pose
-    covariances, some scans nine times less certain, and exact inputs) the unknown cells are the same
-    ones, every known cell's mean, variance and p(occ) is bit for bit the map's without the rule, fewer
-    queries are solved, and the unknown cells the rule skipped read the prior."""
-    beams, cov = intel_beams
-    params = GPParams(make_kernel("se", (0.9, 0.3)), 0.1, 6.0, -0.4)
-    inputs = None
-    if gaussian:
-        moments = input_moments(beams, cov, [SensorNoise(0.01, 1e-4)])
-        laser = input_moments(beams, None, [SensorNoise(0.01, 1e-4)])
-        inputs = GaussianInputs(moments, InputExpectation(GIRARD, 1), local_moments=laser)
-    plain = GPOccupancyMap(beams, params, 15, 15, inputs=inputs)
-    ruled = GPOccupancyMap(beams, params, 15, 15, inputs=inputs, unknown_variance_fraction=0.9)
-    ratio = math.sqrt(0.1 * 0.1 / (30 * params.prior_variance))  # k(0) = sigma_f^2 = 0.81
-    assert ruled.unknown_ratio == pytest.approx(ratio) and plain.unknown_ratio == 0.0
-    x0, y0, x1, y1 = plain.bounds_xy_m(margin_m=5.0)
-    gx, gy = np.meshgrid(np.arange(x0, x1, 0.1), np.arange(y0, y1, 0.1))
-    q = np.column_stack([gx.ravel(), gy.ravel()])
-    a, b = plain.query(q), ruled.query(q)
-    unknown_a = ~(a.variance <= 0.9 * params.prior_variance)
-    unknown_b = ~(b.variance <= 0.9 * params.prior_variance)
-    np.testing.assert_array_equal(unknown_a, unknown_b)
-    assert 0.1 < unknown_a.mean() < 0.9
-    known = ~unknown_a
-    for name in ("mean", "variance", "probability"):
-        np.testing.assert_array_equal(getattr(a, name)[known], getattr(b, name)[known])
-    assert ruled.last_query_stats["solved"] < 0.9 * plain.last_query_stats["solved"]
-    skipped = unknown_b & (b.variance == params.prior_variance)
-    assert skipped.sum() > 0.05 * unknown_b.sum()
-    assert np.all(b.probability[skipped] == params.unseen_probability)
-    assert np.abs(a.probability[skipped] - params.unseen_probability).max() > 0  # the rule changed them
-    with pytest.raises(ValueError, match="unknown_variance_fraction"):
-        unknown_ratio(0.1, 0.9, 30, 1.5)
-    assert unknown_ratio(0.1, 0.9, 30, None) == 0.0 and unknown_ratio(0.1, 0.9, 30, 1.0) == 0.0
