@@ -194,7 +194,10 @@ class GPOccupancyMap:
         pts = np.ascontiguousarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
         t0 = time.perf_counter()
         mask = self.reach()
-        near = mask.contains(pts) if mask is not None else None
+        return self._query(pts, sort, mask.contains(pts) if mask is not None else None, t0)
+
+    def _query(self, pts: FloatArray, sort: bool, near: NDArray[np.bool_] | None, t0: float) -> Prediction:
+        """:meth:`query` of the (Q, 2) points given which of them lie within reach (``near``, None: all)."""
         if near is None or near.all():
             t1 = time.perf_counter()
             out = self._solve(pts, sort)
@@ -255,7 +258,11 @@ class GPOccupancyMap:
         pts, origin, (h, w) = grid_centres(bounds, resolution_m)
         t0 = time.perf_counter()
         order = tile_order(int(h), int(w))
-        tiled = self.query(pts[order], sort=False)
+        mask = self.reach()  # looked up per row and column of the grid (ReachMask.contains_grid)
+        near = None
+        if mask is not None:
+            near = mask.contains_grid(pts[: int(w), 0], pts[:: int(w), 1]).ravel()[order]
+        tiled = self._query(np.ascontiguousarray(pts[order]), False, near, t0)
         pred = Prediction(np.empty(order.size), np.empty(order.size), np.empty(order.size))
         pred.mean[order] = tiled.mean
         pred.variance[order] = tiled.variance

@@ -128,6 +128,22 @@ class ReachMask:
         out[inside] = self.near[idx[:, 1], idx[:, 0]]
         return out
 
+    def contains_grid(self, xs_m: FloatArray, ys_m: FloatArray) -> NDArray[np.bool_]:
+        """(H, W) bool: :meth:`contains` of the grid points ``(xs_m[j], ys_m[i])`` of the (W,) and (H,)
+        coordinates, looked up once per row and column instead of per point."""
+        h, w = self.near.shape
+
+        def cells(v: FloatArray, origin: float, n: int) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+            i = np.floor((np.asarray(v, dtype=np.float64) - origin) / self.cell_m)
+            inside = (i >= 0) & (i < n)
+            return np.where(inside, i, 0).astype(np.int64), inside
+
+        cols, in_x = cells(xs_m, self.origin_xy_m[0], w)
+        rows, in_y = cells(ys_m, self.origin_xy_m[1], h)
+        if self.near.size == 0:
+            return np.zeros((rows.size, cols.size), dtype=bool)
+        return self.near[np.ix_(rows, cols)] & in_y[:, None] & in_x[None, :]
+
     @property
     def share(self) -> float:
         """The share of the raster's cells within reach."""

@@ -164,3 +164,19 @@ def test_the_nn_kernel_solves_every_query(intel_beams) -> None:
     beams, _ = intel_beams
     gp = GPOccupancyMap(beams, GPParams(make_kernel("nn", (0.9, 3.0, 4.0)), 0.05, 6.0, -0.4), 15, 15)
     assert gp.reach() is None
+
+
+def test_contains_grid_equals_contains_at_every_grid_point() -> None:
+    """The per-row-and-column lookup of a render equals the per-point test, inside, across and beyond the
+    raster's edges (and for an empty raster)."""
+    rng = np.random.default_rng(3)
+    starts = rng.uniform(0, 20, (40, 2))
+    mask = reach_mask(starts, starts + rng.normal(0, 2, (40, 2)), rng.uniform(0.2, 2.0, 40))
+    xs = np.arange(-30.0, 50.0, 0.37) + 0.05
+    ys = np.arange(-25.0, 45.0, 0.41) + 0.02
+    gx, gy = np.meshgrid(xs, ys)
+    per_point = mask.contains(np.column_stack([gx.ravel(), gy.ravel()])).reshape(gx.shape)
+    np.testing.assert_array_equal(mask.contains_grid(xs, ys), per_point)
+    assert 0.02 < per_point.mean() < 0.9
+    empty = reach_mask(starts, starts, np.zeros(40))
+    assert not empty.contains_grid(xs, ys).any() and empty.contains_grid(xs, ys).shape == gx.shape
