@@ -21,9 +21,9 @@ EXP_UNDERFLOW = -708.0
 _LOG2E = 1.4426950408889634
 _LN2_HI = 0.6931471803691238  # ln 2 split so that k * _LN2_HI is exact for |k| < 2**11
 _LN2_LO = 1.9082149292705877e-10
-#: 1 / n! for n = 0..13: Taylor's series of exp on |r| <= ln(2) / 2, truncated where the remainder is below
-#: float64's resolution.
-_C = tuple(1.0 / math.factorial(n) for n in range(14))
+#: 1 / n! for n = 13 down to 0 (Horner's order): Taylor's series of exp on |r| <= ln(2) / 2, truncated where
+#: the remainder is below float64's resolution.
+_TAYLOR = tuple(1.0 / math.factorial(n) for n in range(13, -1, -1))
 
 
 @intrinsic
@@ -45,19 +45,8 @@ def exp_nonpositive(x: float) -> float:
     xc = max(x, EXP_UNDERFLOW)
     k = math.floor(xc * _LOG2E + 0.5)
     r = (xc - k * _LN2_HI) - k * _LN2_LO
-    p = _C[13]
-    p = p * r + _C[12]
-    p = p * r + _C[11]
-    p = p * r + _C[10]
-    p = p * r + _C[9]
-    p = p * r + _C[8]
-    p = p * r + _C[7]
-    p = p * r + _C[6]
-    p = p * r + _C[5]
-    p = p * r + _C[4]
-    p = p * r + _C[3]
-    p = p * r + _C[2]
-    p = p * r + _C[1]
-    p = p * r + _C[0]
+    p = 0.0
+    for c in _TAYLOR:  # a constant trip count: unrolled by the compiler
+        p = p * r + c
     scale = _double_from_bits((nb.int64(k) + 1023) << 52)
     return p * scale if x >= EXP_UNDERFLOW else 0.0
