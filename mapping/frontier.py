@@ -369,30 +369,35 @@ def _cast_scans_parallel(poses, offsets, range_max, grid, blocking, cell_gain, c
     return gains
 
 
-def _scan(
+def _cast_args(
     poses_xytheta: FloatArray,
     layers: MapLayers,
     occupied: BoolArray,
     cell_gain: FloatArray,
     laser: LaserModel,
-    seen: bool = True,
-) -> tuple[FloatArray, NDArray[np.int64] | None]:
-    """The gains of the poses and, with ``seen``, which pose last saw each cell (:func:`_cast_scans`);
-    without, the poses are scanned in parallel and no such raster is kept (None)."""
-    poses = np.ascontiguousarray(np.asarray(poses_xytheta, dtype=np.float64).reshape(-1, 3))
-    args = (
-        poses,
+) -> tuple:
+    """The arguments of :func:`_cast_scans` but its scratch, as compiled code takes them."""
+    return (
+        np.ascontiguousarray(np.asarray(poses_xytheta, dtype=np.float64).reshape(-1, 3)),
         np.ascontiguousarray(laser.beam_offsets_rad()),
         float(laser.range_max_m),
         _grid_of(layers),
         np.ascontiguousarray(occupied, dtype=np.bool_),
         np.ascontiguousarray(cell_gain, dtype=np.float64),
     )
-    if not seen:
-        chunks = max(1, min(poses.shape[0], nb.get_num_threads()))
-        return _cast_scans_parallel(*args, chunks), None
-    seen_by = np.zeros(occupied.shape, np.int64)
-    return _cast_scans(*args, seen_by), seen_by
+
+
+def _gains(
+    poses_xytheta: FloatArray,
+    layers: MapLayers,
+    occupied: BoolArray,
+    cell_gain: FloatArray,
+    laser: LaserModel,
+) -> FloatArray:
+    """(N,) the summed ``cell_gain`` each pose's scan sees, the poses scanned in parallel."""
+    args = _cast_args(poses_xytheta, layers, occupied, cell_gain, laser)
+    chunks = max(1, min(args[0].shape[0], nb.get_num_threads()))
+    return _cast_scans_parallel(*args, chunks)
 
 
 def _effective_variance(layers: MapLayers, prior: float) -> FloatArray:
@@ -412,14 +417,17 @@ def expected_variance_reduction(
     map-frame poses (m, m, rad), rays stopped by the (H, W) ``occupied`` cells (module docstring)."""
     prior = params.prior_variance
     gain = variance_reduction_per_cell(_effective_variance(layers, prior), params.noise_var)
-    return _scan(poses_xytheta, layers, occupied, gain, laser or LaserModel(), seen=False)[0]
+    return _gains(poses_xytheta, layers, occupied, gain, laser or LaserModel())
 
 
 def visible_cells(
     pose_xytheta: FloatArray, layers: MapLayers, occupied: BoolArray, laser: LaserModel | None = None
 ) -> BoolArray:
     """(H, W) the cells one scan from the (3,) pose sees."""
-    _, seen_by = _scan(pose_xytheta, layers, occupied, np.zeros(occupied.shape), laser or LaserModel())
+    seen_by = np.zeros(occupied.shape, np.int64)
+    _cast_scans(
+        *_cast_args(pose_xytheta, layers, occupied, np.zeros(occupied.shape), laser or LaserModel()), seen_by
+    )
     return seen_by > 0
 
 
@@ -454,7 +462,7 @@ def plan_exploration(
     for k in range(min(s.n_views, candidates.shape[0])):
         cell_gain = variance_reduction_per_cell(current, noise)
         if k == 0:
-            first, _ = _scan(candidates, layers, knowledge.occupied, cell_gain, s.laser, seen=False)
+            first = _gains(candidates, layers, knowledge.occupied, cell_gain, s.laser)
             bound = first.copy()
             fresh[:] = True
         else:
@@ -466,9 +474,7 @@ def plan_exploration(
                     break
                 stale = np.flatnonzero(~fresh)
                 batch = stale[np.argsort(-bound[stale], kind="stable")[:LAZY_BATCH]]
-                bound[batch], _ = _scan(
-                    candidates[batch], layers, knowledge.occupied, cell_gain, s.laser, seen=False
-                )
+                bound[batch] = _gains(candidates[batch], layers, knowledge.occupied, cell_gain, s.laser)
                 fresh[batch] = True
         best = int(np.argmax(bound))
         if not bound[best] > 0:

@@ -145,8 +145,9 @@ def test_next_best_views_stand_in_free_space_and_look_through_the_door() -> None
 
 
 def _plain_greedy(layers: MapLayers, settings: ExplorationSettings) -> tuple[list[int], list[float]]:
-    """The greedy choice recomputing every candidate's gain each round (what the lazy choice must equal)."""
-    from mapping.frontier import _scan, candidate_poses, cluster_frontier, frontier_anchors
+    """The greedy choice recomputing every candidate's gain each round, each scan cast one after the other
+    (what the lazy choice, cast in parallel, must equal)."""
+    from mapping.frontier import _cast_args, _cast_scans, candidate_poses, cluster_frontier, frontier_anchors
 
     s = settings
     k = classify_knowledge(
@@ -163,9 +164,9 @@ def _plain_greedy(layers: MapLayers, settings: ExplorationSettings) -> tuple[lis
     chosen: list[int] = []
     gains_out: list[float] = []
     for _ in range(min(s.n_views, len(candidates))):
-        gains, _ = _scan(
-            candidates, layers, k.occupied, variance_reduction_per_cell(current, PARAMS.noise_var), s.laser
-        )
+        gain = variance_reduction_per_cell(current, PARAMS.noise_var)
+        seen_by = np.zeros(layers.shape, np.int64)
+        gains = _cast_scans(*_cast_args(candidates, layers, k.occupied, gain, s.laser), seen_by)
         gains[chosen] = -np.inf
         best = int(np.argmax(gains))
         if not gains[best] > 0:
