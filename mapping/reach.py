@@ -117,29 +117,27 @@ class ReachMask:
     origin_xy_m: tuple[float, float]
     cell_m: float
 
+    def _cells(self, v_m: FloatArray, axis: int) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+        """The raster column (``axis`` 0, from x) or row (1, from y) of each coordinate of ``v_m``, 0 where
+        it lies off the raster, and whether it lies on it."""
+        i = np.floor((np.asarray(v_m, dtype=np.float64) - self.origin_xy_m[axis]) / self.cell_m)
+        inside = (i >= 0) & (i < self.near.shape[1 - axis])
+        return np.where(inside, i, 0).astype(np.int64), inside
+
     def contains(self, points_xy_m: FloatArray) -> NDArray[np.bool_]:
         """(P,) bool: which of the (P, 2) points lie within some input's reach."""
         pts = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
-        ij = np.floor((pts - np.asarray(self.origin_xy_m)) / self.cell_m)
-        h, w = self.near.shape
-        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
-        out = np.zeros(pts.shape[0], dtype=bool)
-        idx = ij[inside].astype(np.int64)
-        out[inside] = self.near[idx[:, 1], idx[:, 0]]
-        return out
+        cols, in_x = self._cells(pts[:, 0], 0)
+        rows, in_y = self._cells(pts[:, 1], 1)
+        if self.near.size == 0:
+            return np.zeros(pts.shape[0], dtype=bool)
+        return self.near[rows, cols] & in_x & in_y
 
     def contains_grid(self, xs_m: FloatArray, ys_m: FloatArray) -> NDArray[np.bool_]:
         """(H, W) bool: :meth:`contains` of the grid points ``(xs_m[j], ys_m[i])`` of the (W,) and (H,)
         coordinates, looked up once per row and column instead of per point."""
-        h, w = self.near.shape
-
-        def cells(v: FloatArray, origin: float, n: int) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
-            i = np.floor((np.asarray(v, dtype=np.float64) - origin) / self.cell_m)
-            inside = (i >= 0) & (i < n)
-            return np.where(inside, i, 0).astype(np.int64), inside
-
-        cols, in_x = cells(xs_m, self.origin_xy_m[0], w)
-        rows, in_y = cells(ys_m, self.origin_xy_m[1], h)
+        cols, in_x = self._cells(xs_m, 0)
+        rows, in_y = self._cells(ys_m, 1)
         if self.near.size == 0:
             return np.zeros((rows.size, cols.size), dtype=bool)
         return self.near[np.ix_(rows, cols)] & in_y[:, None] & in_x[None, :]
