@@ -32,6 +32,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from numpy.typing import NDArray
+from PIL import Image
 
 from mapping.exports import MapLayers
 from mapping.gpmap import FREE, OCCUPIED, UNSURE, classify
@@ -198,8 +199,6 @@ def save_figure(fig: Figure, path: Path) -> Path:
     if rgb is None:
         fig.savefig(path, dpi=fig.dpi, metadata={"Software": None})
     else:
-        from PIL import Image  # matplotlib's own PNG writer
-
         Image.fromarray(rgb).save(path, format="png", compress_level=PNG_COMPRESS_LEVEL)
     return path
 

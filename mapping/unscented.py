@@ -219,7 +219,7 @@ def _beam_moments(bearing, pose, pose_root, sd_r, sd_b, mount, c, wm, wc, a, bb,
     pose_root)``), each point's image ``P_k`` at d = 0 and beam direction ``u_k`` (eq. 26; positions
     relative to the mean base position, so that large world coordinates do not cancel), then eqs. (27)-(28)
     by powers of d into ``a``, ``bb`` (M, 2) and the packed ``c0``, ``c1``, ``c2`` (M, 3)."""
-    n = 5
+    n = STATE_DIM
     nk = 2 * n + 1
     px = np.empty(nk)
     py = np.empty(nk)
