@@ -8,6 +8,7 @@ the same int8 values, computed once here.
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ from datasets.types import Trajectory
 from mapping.config import MappingConfig
 from mapping.exports import Classification, MapExportError, MapLayers, write_layers_npz, write_map_server
 from mapping.figures import plot_before_after_maps, plot_classified, plot_difference, plot_layer
-from mapping.frontier import ExplorationSettings, plan_exploration
+from mapping.frontier import ExplorationPlan, ExplorationSettings, plan_exploration
 from mapping.train import GPParams
 from pipeline.config import ExportConfig
 
@@ -47,17 +48,8 @@ def map_metadata(layers: MapLayers) -> dict[str, Any]:
     return keys
 
 
-def write_map_folder(
-    folder: Path,
-    layers: MapLayers,
-    cfg: MappingConfig,
-    export: ExportConfig,
-    title: str,
-    path_xy_m: NDArray,
-    ate_m: float | None = None,
-) -> list[Path]:
-    """``occupancy.pgm`` + ``occupancy.yaml``, ``layers.npz`` and the PNGs of one classified map; returns
-    the files."""
+def write_map_data(folder: Path, layers: MapLayers) -> list[Path]:
+    """``occupancy.pgm`` + ``occupancy.yaml`` and ``layers.npz`` of one classified map; returns the files."""
     folder.mkdir(parents=True, exist_ok=True)
     files = list(
         write_map_server(
@@ -69,42 +61,49 @@ def write_map_folder(
         )
     )
     files.append(write_layers_npz(folder / "layers.npz", layers))
-    if export.png:
-        unknown = layers.unknown
-        prior = layers.classification.prior_variance if layers.classification is not None else None
-        files.append(
-            plot_layer(
-                layers,
-                "probability",
-                folder / "occupancy.png",
-                f"{title}: p(occupied)",
-                path_xy_m,
-                unknown=unknown,
-                ate_m=ate_m,
-            )
-        )
-        files.append(
-            plot_layer(
-                layers,
-                "variance",
-                folder / "variance.png",
-                f"{title}: GP variance",
-                path_xy_m,
-                prior_variance=prior,
-            )
-        )
-        files.append(
-            plot_classified(
-                layers,
-                folder / "classified.png",
-                cfg.occupied_threshold,
-                cfg.free_threshold,
-                f"{title}: the planners' classification",
-                unknown=unknown,
-                ate_m=ate_m,
-            )
-        )
     return files
+
+
+def write_map_figures(
+    folder: Path,
+    layers: MapLayers,
+    cfg: MappingConfig,
+    title: str,
+    path_xy_m: NDArray,
+    ate_m: float | None = None,
+) -> list[Path]:
+    """The PNGs of one classified map (p(occupied), variance, classification); returns the files."""
+    folder.mkdir(parents=True, exist_ok=True)
+    unknown = layers.unknown
+    prior = layers.classification.prior_variance if layers.classification is not None else None
+    return [
+        plot_layer(
+            layers,
+            "probability",
+            folder / "occupancy.png",
+            f"{title}: p(occupied)",
+            path_xy_m,
+            unknown=unknown,
+            ate_m=ate_m,
+        ),
+        plot_layer(
+            layers,
+            "variance",
+            folder / "variance.png",
+            f"{title}: GP variance",
+            path_xy_m,
+            prior_variance=prior,
+        ),
+        plot_classified(
+            layers,
+            folder / "classified.png",
+            cfg.occupied_threshold,
+            cfg.free_threshold,
+            f"{title}: the planners' classification",
+            unknown=unknown,
+            ate_m=ate_m,
+        ),
+    ]
 
 
 def write_maps(
@@ -136,20 +135,39 @@ def write_maps(
             cfg, export.unknown_variance_fraction, n_views=export.next_best_views
         )
         plans = {name: plan_exploration(layers, params, settings) for name, layers in maps.items()}
-    files: list[Path] = []
+    for m in maps.values():
+        _ = m.unknown  # computed once, before the threads below read it
+    bag = maps_dir / ("maps.mcap" if export.bag_format == "mcap" else "maps.bag")
+    # The bag and the data files are written in worker threads, the figures drawn in this one (matplotlib is
+    # not thread-safe): most of the writers' time is compression and copying, which release the GIL.
+    with ThreadPoolExecutor(max_workers=2, thread_name_prefix="export") as pool:
+        bag_written = pool.submit(_write_bag, bag, maps, plans, trajectories, closures_xy_m, stamp_ns)
+        data = {name: pool.submit(write_map_data, maps_dir / name, m) for name, m in maps.items()}
+        figures: dict[str, list[Path]] = {}
+        if export.png:
+            figures = _write_figures(maps_dir, maps, trajectories, closures_xy_m, cfg, ate_m)
+        files = [f for name in maps for f in data[name].result() + figures.get(name, [])]
+        files += figures.get("", [])
+        files.append(bag_written.result())
+    return files
+
+
+def _write_figures(
+    maps_dir: Path,
+    maps: dict[str, MapLayers],
+    trajectories: dict[str, Trajectory],
+    closures_xy_m: NDArray | None,
+    cfg: MappingConfig,
+    ate_m: dict[str, float | None],
+) -> dict[str, list[Path]]:
+    """Each map's PNGs (by name), and under "" the before / after comparison and difference figures."""
+    out: dict[str, list[Path]] = {}
     for name, layers in maps.items():
         title = f"{name} loop closure" if name in ("before", "after") else name
-        files += write_map_folder(
-            maps_dir / name,
-            layers,
-            cfg,
-            export,
-            title,
-            trajectories[name].poses_xytheta[:, :2],
-            ate_m.get(name),
-        )
-    if export.png and {"before", "after"} <= set(maps):
-        files.append(
+        path_xy_m = trajectories[name].poses_xytheta[:, :2]
+        out[name] = write_map_figures(maps_dir / name, layers, cfg, title, path_xy_m, ate_m.get(name))
+    if {"before", "after"} <= set(maps):
+        out[""] = [
             plot_before_after_maps(
                 maps["before"],
                 maps["after"],
@@ -158,9 +176,7 @@ def write_maps(
                 trajectories["after"].poses_xytheta[:, :2],
                 closures_xy_m,
                 ate_m=ate_m,
-            )
-        )
-        files.append(
+            ),
             plot_difference(
                 maps["before"],
                 maps["after"],
@@ -168,9 +184,20 @@ def write_maps(
                 path_after_xy_m=trajectories["after"].poses_xytheta[:, :2],
                 closures_xy_m=closures_xy_m,
                 ate_m=ate_m,
-            )
-        )
-    bag = maps_dir / ("maps.mcap" if export.bag_format == "mcap" else "maps.bag")
+            ),
+        ]
+    return out
+
+
+def _write_bag(
+    bag: Path,
+    maps: dict[str, MapLayers],
+    plans: dict[str, ExplorationPlan],
+    trajectories: dict[str, Trajectory],
+    closures_xy_m: NDArray | None,
+    stamp_ns: int,
+) -> Path:
+    """The maps bag (:func:`datasets.ros.maps.write_map_bag`) of the classified ``maps``; returns its path."""
     rasters = {
         name: Raster(
             {
@@ -200,5 +227,4 @@ def write_maps(
         tf_trajectory=None if tf_name is None else trajectories[tf_name],
         views_xytheta={name: plan.views_xytheta for name, plan in plans.items()},
     )
-    files.append(bag)
-    return files
+    return bag
