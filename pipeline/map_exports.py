@@ -20,7 +20,7 @@ from datasets.types import Trajectory
 from mapping.config import MappingConfig
 from mapping.exports import Classification, MapExportError, MapLayers, write_layers_npz, write_map_server
 from mapping.figures import plot_before_after_maps, plot_classified, plot_difference, plot_layer
-from mapping.frontier import ExplorationPlan, ExplorationSettings, plan_exploration
+from mapping.frontier import ExplorationSettings, plan_exploration
 from mapping.train import GPParams
 from pipeline.config import ExportConfig
 
@@ -129,19 +129,22 @@ def write_maps(
     """
     ate_m = ate_m or {}
     maps = {name: classify_layers(layers, params, cfg, export) for name, layers in maps.items()}
-    plans = {}
+    settings = None
     if export.next_best_views > 0:
         settings = ExplorationSettings.from_config(
             cfg, export.unknown_variance_fraction, n_views=export.next_best_views
         )
-        plans = {name: plan_exploration(layers, params, settings) for name, layers in maps.items()}
     for m in maps.values():
         _ = m.unknown  # computed once, before the threads below read it
     bag = maps_dir / ("maps.mcap" if export.bag_format == "mcap" else "maps.bag")
-    # The bag and the data files are written in worker threads, the figures drawn in this one (matplotlib is
-    # not thread-safe): most of the writers' time is compression and copying, which release the GIL.
+    # The exploration plans and the bag, and the data files, are written in worker threads, the figures
+    # drawn in this one (matplotlib is not thread-safe): most of the writers' time is compression and
+    # copying, which release the GIL. Only the plans run parallel compiled loops, so no two threads launch
+    # them at once (numba's default threading layer does not allow that).
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="export") as pool:
-        bag_written = pool.submit(_write_bag, bag, maps, plans, trajectories, closures_xy_m, stamp_ns)
+        bag_written = pool.submit(
+            _write_bag, bag, maps, params, settings, trajectories, closures_xy_m, stamp_ns
+        )
         data = {name: pool.submit(write_map_data, maps_dir / name, m) for name, m in maps.items()}
         figures: dict[str, list[Path]] = {}
         if export.png:
@@ -192,12 +195,17 @@ def _write_figures(
 def _write_bag(
     bag: Path,
     maps: dict[str, MapLayers],
-    plans: dict[str, ExplorationPlan],
+    params: GPParams,
+    settings: ExplorationSettings | None,
     trajectories: dict[str, Trajectory],
     closures_xy_m: NDArray | None,
     stamp_ns: int,
 ) -> Path:
-    """The maps bag (:func:`datasets.ros.maps.write_map_bag`) of the classified ``maps``; returns its path."""
+    """The maps bag (:func:`datasets.ros.maps.write_map_bag`) of the classified ``maps``, with each map's
+    exploration plan when ``settings`` is given; returns its path."""
+    plans = {}
+    if settings is not None:
+        plans = {name: plan_exploration(layers, params, settings) for name, layers in maps.items()}
     rasters = {
         name: Raster(
             {
