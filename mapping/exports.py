@@ -108,6 +108,9 @@ class MapLayers:
     origin_xy_m: tuple[float, float]
     frame_id: str = "map"
     classification: Classification | None = None
+    #: (H, W) float32 world-frame placement uncertainty (m; NaN where no beam observed the cell), see
+    #: :mod:`mapping.placement`; None when the map's poses came without world covariances
+    placement_sigma_m: NDArray[np.float32] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -252,7 +255,8 @@ def read_map_server(yaml_path: Path) -> tuple[NDArray[np.int8], dict]:
 def write_layers_npz(path: Path, layers: MapLayers) -> Path:
     """Write float32 probability, mean, variance with resolution, origin and frame to ``path`` (.npz); with
     a classification also the float32 ``prior_variance`` layer, the ``unknown`` mask (uint8 0 / 1) and the
-    scalars ``unknown_variance_fraction``, ``occupied_threshold``, ``free_threshold``."""
+    scalars ``unknown_variance_fraction``, ``occupied_threshold``, ``free_threshold``; with a placement
+    uncertainty its float32 ``placement_sigma_m`` layer."""
     path = Path(path)
     extra: dict[str, Any] = {}
     c = layers.classification
@@ -264,6 +268,8 @@ def write_layers_npz(path: Path, layers: MapLayers) -> Path:
             occupied_threshold=np.float64(c.occupied_threshold),
             free_threshold=np.float64(c.free_threshold),
         )
+    if layers.placement_sigma_m is not None:
+        extra["placement_sigma_m"] = np.asarray(layers.placement_sigma_m, dtype=np.float32)
     arrays = dict(
         probability=layers.probability.astype(np.float32),
         mean=layers.mean.astype(np.float32),
@@ -303,6 +309,7 @@ def read_layers_npz(path: Path) -> MapLayers:
                 origin_xy_m=(float(z["origin_xy_m"][0]), float(z["origin_xy_m"][1])),
                 frame_id=str(z["frame_id"]),
                 classification=classification,
+                placement_sigma_m=z["placement_sigma_m"] if "placement_sigma_m" in z.files else None,
             )
     except (OSError, KeyError, ValueError) as exc:
         raise MapExportError(f"{path}: not a readable layers file ({exc})") from None

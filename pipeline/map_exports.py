@@ -213,6 +213,7 @@ def _write_bag(
                 "mean": m.mean,
                 "variance": m.variance,
                 "unknown": np.asarray(m.unknown, dtype=np.float32),
+                **({} if m.placement_sigma_m is None else {"placement_sigma": m.placement_sigma_m}),
                 **(plans[name].layers() if name in plans else {}),
             },
             m.resolution_m,

@@ -36,6 +36,7 @@ import numpy as np
 from datasets.types import Trajectory
 from mapping.build import Bounds, MapBuilder
 from mapping.exports import read_layers_npz
+from mapping.placement import with_placement
 from mapping.train import GPParams, ParamsFileError
 from pipeline.artifacts import (
     COVARIANCES_NPZ,
@@ -46,6 +47,7 @@ from pipeline.artifacts import (
     covariances_at,
     read_keyframe_indices,
     read_mapper_covariances,
+    read_scan_covariances,
     read_scans,
 )
 from pipeline.config import load_config, write_config
@@ -190,6 +192,10 @@ def remap_run(
         cov_file = Path(covariances) if covariances is not None else traj_dir / COVARIANCES_NPZ
         mode = cfg.gppol.pose_covariances
         new_cov = run_cov = None
+        world_cov = None  # the placement layer's (mapping.placement): none without a covariance file
+        if mode != "none" or cov_file.is_file():
+            world_stamps, world_cov = read_scan_covariances(cov_file, "after")
+            world_cov = covariances_at(scans.stamps_ns, world_stamps, world_cov)
         if mode != "none":
             cov_stamps, cov = read_mapper_covariances(cov_file, "after", mode)
             new_cov = covariances_at(scans.stamps_ns, cov_stamps, cov)
@@ -237,7 +243,7 @@ def remap_run(
                 gp = builder.tiled_map(new_beams, params, map_bounds, sc.tile_cells, new_cov, renderer)
                 with progress.stage("remap tiles", total=len(gp.grid)) as bar:
                     report = gp.render_all(on_tile=lambda _r: bar.advance())
-        layers = {MAP_NAME: gp.layers()}
+        layers = {MAP_NAME: with_placement(gp.layers(), new_beams, world_cov)}
         (stage / "maps").mkdir()
         shutil.copyfile(params_path(run_dir / "maps"), params_path(stage / "maps"))
         with timer("export"):

@@ -23,6 +23,7 @@ from datasets.types import Recording, Trajectory
 from mapping.build import Bounds, MapBuilder, check_mapper
 from mapping.evaluation import rendered_ground_truth_auc
 from mapping.exports import MapLayers
+from mapping.placement import with_placement
 from mapping.tiling import IncrementalMap, TileRenderer, render_serial
 from mapping.train import GPParams
 from pipeline.artifacts import (
@@ -235,6 +236,8 @@ def run_pipeline(
         with timer("evaluate"):
             metrics = evaluate_run(input_path, rec, slam, maps, layers)
         with timer("export"), progress.stage("export", total=1) as bar:
+            world = {"before": slam.cov_before_xytheta, "after": slam.cov_after_xytheta}
+            layers = {name: with_placement(m, maps[name].beams, world[name]) for name, m in layers.items()}
             write_maps(
                 stage / "maps",
                 layers,

@@ -105,6 +105,12 @@ def check_run_folder(out: Path) -> dict:
         assert gm.shape == layers.shape and gm.origin_xy_m == pytest.approx(layers.origin_xy_m)
         for name in ("probability", "mean", "variance"):
             np.testing.assert_array_equal(gm.layers[name], getattr(layers, name))
+        # the placement uncertainty (m): where a beam observed the cell, from the world marginals
+        placement = layers.placement_sigma_m
+        assert placement is not None and placement.shape == layers.shape
+        np.testing.assert_array_equal(gm.layers["placement_sigma"], placement)
+        seen = np.isfinite(placement)
+        assert 0.05 < seen.mean() < 1 and np.all(placement[seen] >= 0)
         # the summary's shares of occupied / free / unknown cells are those of the exported classification
         shares = summary["map"]["cell_shares"][which]
         for value, key in ((100, "occupied"), (0, "free"), (-1, "unknown")):
@@ -132,6 +138,14 @@ def test_loop_run_folder_is_complete(loop_run) -> None:
         sigma = np.sqrt(rel[:, 0, 0] + rel[:, 1, 1])
         assert np.median(sigma) < 0.02 and np.percentile(sigma, 95) < 0.1
         assert np.median(np.sqrt(world[:, 0, 0] + world[:, 1, 1])) > 5 * np.median(sigma)
+    # the world marginals go to the placement layer instead: decimetres after loop closure, and several
+    # times that on the odometry chain before it
+    placement = {
+        w: read_layers_npz(loop_run / "maps" / w / "layers.npz").placement_sigma_m
+        for w in ("before", "after")
+    }
+    assert 0.05 < np.nanmedian(placement["after"]) < 0.5
+    assert np.nanmedian(placement["before"]) > 2 * np.nanmedian(placement["after"])
     assert summary["counts"]["loop_closures"] >= 1
     ate = summary["metrics"]["ate_rmse_m"]
     assert ate["after"] < 0.05 and ate["after"] <= ate["before"]
@@ -188,6 +202,7 @@ def test_remap_with_own_trajectory_reproduces_after_map(loop_run) -> None:
     a = read_layers_npz(loop_run / "maps/after/layers.npz")
     b = read_layers_npz(loop_run / "remap/maps/remap/layers.npz")
     assert_same_map(a, b)
+    np.testing.assert_array_equal(a.placement_sigma_m, b.placement_sigma_m)
     # without --recompute nothing changed, so nothing is recomputed
     result = run_cli("remap", str(loop_run), "--out", str(loop_run.parent / "copy"), "--json")
     assert result.returncode == 0 and json.loads(result.stdout)["recomputed"] is False
