@@ -11,12 +11,14 @@ import math
 import random
 from collections.abc import Callable, Sequence
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
 from mapping.beams import Beams
 from mapping.exports import MapLayers
 from mapping.metrics import roc_auc
+from mapping.raster import GridGeometry, in_grid, segment_walk, walk_next
 
 FloatArray = NDArray[np.float64]
 
@@ -214,3 +216,95 @@ def _cells_in(
     rh, rw = rendered.shape
     inside = (rows >= 0) & (rows < rh) & (cols >= 0) & (cols < rw)
     return inside, rows[inside], cols[inside]
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _visit(ix, iy, path_m, gap_m, last, revisited):
+    """Cell (ix, iy) observed at ``path_m`` of travel: a new pass when the last observation lies more than
+    ``gap_m`` of travel before."""
+    prev = last[iy, ix]
+    if path_m - prev > gap_m and math.isfinite(prev):
+        revisited[iy, ix] = True
+    last[iy, ix] = path_m
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _passes(origins, free_ends, ends, is_hit, path_m, gap_m, grid, last, revisited):
+    """Walk every beam (in the order of ``path_m`` (M,), non-decreasing) over the cells its free part
+    crosses and the cell of its return, updating ``last`` / ``revisited`` (ny, nx) (:func:`_visit`)."""
+    for i in range(origins.shape[0]):
+        w, ex, ey, steps = segment_walk(
+            grid, origins[i, 0], origins[i, 1], free_ends[i, 0], free_ends[i, 1], False
+        )
+        n = 0
+        while True:
+            if in_grid(grid, w.ix, w.iy):
+                _visit(w.ix, w.iy, path_m[i], gap_m, last, revisited)
+            n += 1
+            if (w.ix == ex and w.iy == ey) or n > steps:
+                break
+            w = walk_next(w)
+        if is_hit[i]:
+            ix = math.floor((ends[i, 0] - grid.x0) / grid.cell)
+            iy = math.floor((ends[i, 1] - grid.y0) / grid.cell)
+            if in_grid(grid, ix, iy):
+                _visit(ix, iy, path_m[i], gap_m, last, revisited)
+
+
+def pass_masks(
+    beams: Beams,
+    path_m: FloatArray,
+    gap_m: float,
+    shape: tuple[int, int],
+    origin_xy_m: FloatArray,
+    resolution_m: float,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """``(observed, revisited)`` (H, W) bool over a raster (``shape``, lower-left ``origin_xy_m``, cells of
+    ``resolution_m``): the cells a beam's free part crosses or its return lies in, and those among them
+    observed again after the robot travelled more than ``gap_m`` without observing them -- the places two
+    passes see, where an inconsistent trajectory doubles walls (the visits of :mod:`slam.consistency`,
+    per cell). ``path_m`` (N,): the distance travelled to each scan (``beams.scan_index`` indexes it)."""
+    h, w = (int(v) for v in shape)
+    last = np.full((h, w), -np.inf)
+    revisited = np.zeros((h, w), dtype=bool)
+    if len(beams):
+        order = np.argsort(np.asarray(path_m, dtype=np.float64)[beams.scan_index], kind="stable")
+        grid = GridGeometry.of(float(origin_xy_m[0]), float(origin_xy_m[1]), resolution_m, w, h)
+        _passes(
+            np.ascontiguousarray(beams.origins_xy_m[order], dtype=np.float64),
+            np.ascontiguousarray(beams.free_ends_xy_m[order], dtype=np.float64),
+            np.ascontiguousarray(beams.ends_xy_m[order], dtype=np.float64),
+            np.ascontiguousarray(beams.is_hit[order]),
+            np.ascontiguousarray(np.asarray(path_m, dtype=np.float64)[beams.scan_index[order]]),
+            float(gap_m),
+            grid,
+            last,
+            revisited,
+        )
+    return np.isfinite(last), revisited
+
+
+def ground_truth_auc_over(
+    rendered: MapLayers,
+    occupancy: NDArray,
+    origin_xy_m: FloatArray,
+    resolution_m: float,
+    cells: dict[str, NDArray[np.bool_]],
+) -> dict[str, float | None]:
+    """AUC of the ``rendered`` map's p(occ) against a ground-truth raster (as
+    :func:`rendered_ground_truth_auc`) over each named subset ``cells`` ((H, W) bool on the raster) of its
+    cells that lie in the map; None for a subset without both labels."""
+    rows_cols = _cells_in(rendered, occupancy.shape, np.asarray(origin_xy_m, np.float64), resolution_m)
+    out: dict[str, float | None] = {name: None for name in cells}
+    if rows_cols is None:
+        return out
+    inside, rows, cols = rows_cols
+    probability = np.full(inside.shape[0], np.nan)
+    probability[inside] = rendered.probability[rows, cols]
+    labels = np.asarray(occupancy).astype(bool).ravel()
+    for name, mask in cells.items():
+        keep = np.asarray(mask).ravel() & inside
+        lab = labels[keep]
+        if lab.any() and not lab.all():
+            out[name] = roc_auc(probability[keep], lab)
+    return out

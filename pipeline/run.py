@@ -13,15 +13,16 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from datasets.errors import DatasetError
 from datasets.registry import guess_format, open_dataset
 from datasets.types import Recording, Trajectory
+from mapping.beams import beams_from_scan_sequence
 from mapping.build import Bounds, MapBuilder, check_mapper
-from mapping.evaluation import rendered_ground_truth_auc
+from mapping.evaluation import ground_truth_auc_over, pass_masks, rendered_ground_truth_auc
 from mapping.exports import MapLayers
 from mapping.placement import with_placement
 from mapping.tiling import IncrementalMap, TileRenderer, render_serial
@@ -45,6 +46,9 @@ from slam.metrics import ate_rmse
 from slam.result import SlamResult
 from slam.system import run_slam_recording
 from slam.trajectory_io import read_tum
+
+if TYPE_CHECKING:
+    from datasets.simulation.raster import GroundTruth
 
 MAP_MARGIN_M = 1.0
 
@@ -234,7 +238,7 @@ def run_pipeline(
         (stage / "maps").mkdir()
         params.save(params_path(stage / "maps"))
         with timer("evaluate"):
-            metrics = evaluate_run(input_path, rec, slam, maps, layers)
+            metrics = evaluate_run(input_path, rec, slam, maps, layers, config.slam.consistency.revisit_gap_m)
         with timer("export"), progress.stage("export", total=1) as bar:
             world = {"before": slam.cov_before_xytheta, "after": slam.cov_after_xytheta}
             layers = {name: with_placement(m, maps[name].beams, world[name]) for name, m in layers.items()}
@@ -271,10 +275,13 @@ def evaluate_run(
     slam: SlamResult,
     maps: dict[str, IncrementalMap],
     layers: dict[str, MapLayers],
+    revisit_gap_m: float = 10.0,
 ) -> dict[str, Any]:
     """ATE before / after against the recording's reference poses, AUC before / after against a
     ground-truth raster beside the input (simulated worlds: the rendered ``layers`` where the raster's cells
-    are theirs, the GP map elsewhere); None where there is no reference."""
+    are theirs, the GP map elsewhere); None where there is no reference. With both, also ``auc_by_cells``:
+    the AUC over the raster's cells a beam observed at the reference poses, over those two passes observed
+    (:func:`mapping.evaluation.pass_masks`, ``revisit_gap_m``) and over those only one pass did."""
     metrics: dict[str, Any] = {"ate_rmse_m": None, "auc": None}
     if rec.reference is not None and len(rec.reference) == len(slam.stamps_ns):
         ref = rec.reference.poses_xytheta
@@ -298,7 +305,29 @@ def evaluate_run(
             for name, m in maps.items()
         }
         metrics["auc_ground_truth"] = str(gt_path)
+        if rec.reference is not None and len(rec.reference) == len(rec.scans):
+            metrics["auc_by_cells"] = auc_by_cells(rec, gt, layers, revisit_gap_m)
     return metrics
+
+
+def auc_by_cells(
+    rec: Recording, gt: GroundTruth, layers: dict[str, MapLayers], revisit_gap_m: float
+) -> dict[str, Any]:
+    """Per map, the AUC against the ground truth ``gt`` over the raster's cells ``observed`` by a beam of
+    ``rec`` at its reference poses, ``revisited`` by a second pass, ``seen_once``; with the cell counts."""
+    ref = rec.reference.poses_xytheta
+    beams = beams_from_scan_sequence(rec.scans, ref, rec.laser_in_base_xytheta)
+    path_m = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ref[:, :2], axis=0).T))])
+    observed, revisited = pass_masks(
+        beams, path_m, revisit_gap_m, gt.occupancy.shape, gt.origin_xy_m, gt.resolution_m
+    )
+    cells = {"observed": observed, "revisited": revisited, "seen_once": observed & ~revisited}
+    out: dict[str, Any] = {
+        name: ground_truth_auc_over(m, gt.occupancy, gt.origin_xy_m, gt.resolution_m, cells)
+        for name, m in layers.items()
+    }
+    out["cells"] = {name: int(np.count_nonzero(mask)) for name, mask in cells.items()}
+    return out
 
 
 def make_summary(

@@ -8,10 +8,14 @@ import random
 import numpy as np
 import pytest
 
+from mapping.beams import beams_from_scans
 from mapping.evaluation import (
+    ground_truth_auc_over,
     holdout_split,
     holdout_test_points,
     is_carmen_180,
+    observed_cells,
+    pass_masks,
     raster_cell_centres,
     rendered_ground_truth_auc,
 )
@@ -143,3 +147,45 @@ def test_rendered_ground_truth_auc_off_the_lattice_queries_every_cell() -> None:
     assert rendered_ground_truth_auc(on_lattice, occupancy, gt_origin, res, refuse) == roc_auc(
         _field(centres).astype(np.float32), occupancy.astype(bool).ravel()
     )
+
+
+def test_pass_masks_tell_a_second_pass_from_one_long_look() -> None:
+    # a robot looks along +x from (0, 0), drives 8 m along the x axis (scans every 0.5 m, still one pass: no
+    # cell goes unobserved over more than 10 m of travel), leaves for 30 m and looks again from (0, 0)
+    angles = np.linspace(-0.5, 0.5, 21)
+    xs = np.arange(0.0, 8.01, 0.5)
+    poses = [[x, 0.0, 0.0] for x in xs] + [[0.0, 0.0, 0.0]]
+    path_m = np.concatenate([xs, [xs[-1] + 30.0]])
+    beams = beams_from_scans(
+        [np.full(21, 3.0)] * len(poses), [angles] * len(poses), 0.1, 30.0, np.array(poses)
+    )
+    shape, origin, res = (40, 160), np.array([-2.0, -2.0]), 0.1
+    observed, revisited = pass_masks(beams, path_m, 10.0, shape, origin, res)
+    bounds = (origin[0], origin[1], origin[0] + 160 * res, origin[1] + 40 * res)
+    np.testing.assert_array_equal(observed, observed_cells(beams, bounds, res))  # the same cells as the grid
+    # the last scan's cells are revisited; the far end, seen only from x >= 3.5, is not
+    last_scan = pass_masks(
+        beams.subset(beams.scan_index == len(poses) - 1), path_m, 10.0, shape, origin, res
+    )[0]
+    assert revisited[last_scan].mean() > 0.95
+    assert not revisited[:, int((9.0 - origin[0]) / res)].any()
+    assert not pass_masks(beams, path_m, 40.0, shape, origin, res)[1].any()  # a gap of 30 m < 40 m: one pass
+
+
+def test_ground_truth_auc_over_named_cells() -> None:
+    occ = np.zeros((4, 5), np.uint8)
+    occ[:, 4] = 1
+    p = np.tile(np.array([0.1, 0.2, 0.9, 0.3, 0.8], np.float32), (4, 1))
+    layers = MapLayers(p, p, p, 0.5, (0.0, 0.0))
+    right = np.zeros((4, 5), bool)
+    right[:, 2:] = True
+    out = ground_truth_auc_over(
+        layers,
+        occ,
+        np.zeros(2),
+        0.5,
+        {"all": np.ones((4, 5), bool), "right": right, "free": ~right & (occ == 0)},
+    )
+    assert out["all"] == pytest.approx(roc_auc(p.ravel(), occ.ravel().astype(bool)))
+    assert out["right"] == pytest.approx(0.5)  # 0.8 occupied against 0.9 and 0.3 free
+    assert out["free"] is None  # one label only

@@ -153,6 +153,13 @@ def test_loop_run_folder_is_complete(loop_run) -> None:
     # the loop world's odometry chain drifts 0.4 m along its gallery: the map before loop closure is worse
     # (`run.py demo`, GPPOL, seed 0: 0.681 before, 0.883 after)
     assert 0.6 < auc["before"] < auc["after"] <= 1 and auc["after"] > 0.75, auc
+    # over the cells a beam observed the maps score higher than over the whole raster (55 % of it unseen),
+    # and the loop's start is seen by two passes
+    by_cells = summary["metrics"]["auc_by_cells"]
+    assert by_cells["cells"]["revisited"] > 0.1 * by_cells["cells"]["observed"]
+    assert by_cells["cells"]["revisited"] + by_cells["cells"]["seen_once"] == by_cells["cells"]["observed"]
+    for which in ("before", "after"):
+        assert by_cells[which]["observed"] > auc[which]
     assert set(summary["timings_s"]) >= {
         "read",
         "slam",
