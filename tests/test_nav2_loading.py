@@ -117,12 +117,14 @@ def test_bag_occupancy_grid_is_the_pgm(lsm_run: Path) -> None:
         assert grid.resolution_m == pytest.approx(params["resolution"])
         np.testing.assert_array_equal(grid.layers["value"].astype(np.int8), loaded)
         gm = rasters[f"/{which}/grid_map"]
-        # the map's layers, and the exploration plan's (export.next_best_views > 0 by default)
-        assert set(gm.layers) == {"probability", "mean", "variance", "unknown", "frontier", "information"}
+        # the map's layers, its placement uncertainty and the exploration plan's (export.next_best_views > 0)
+        map_layers = {"probability", "mean", "variance", "unknown", "placement_sigma"}
+        assert set(gm.layers) == map_layers | {"frontier", "information"}
         frontier = gm.layers["frontier"] == 1
         assert frontier.any() and np.all(loaded[frontier] == 0)  # frontier cells are free cells
         with np.load(lsm_run / "maps" / which / "layers.npz") as z:
             np.testing.assert_array_equal(gm.layers["unknown"], z["unknown"].astype(np.float32))
+            np.testing.assert_array_equal(gm.layers["placement_sigma"], z["placement_sigma_m"])
         assert np.all(loaded[gm.layers["unknown"] == 1] == -1)  # never observed: never free nor occupied
 
 
