@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from mapping.beams import Beams
 from mapping.exports import MapLayers
 from mapping.metrics import roc_auc
-from mapping.raster import GridGeometry, in_grid, segment_walk, walk_next
+from mapping.raster import GridGeometry, in_grid, point_cell, segment_cells
 
 FloatArray = NDArray[np.float64]
 
@@ -232,21 +232,14 @@ def _visit(ix, iy, path_m, gap_m, last, revisited):
 def _passes(origins, free_ends, ends, is_hit, path_m, gap_m, grid, last, revisited):
     """Walk every beam (in the order of ``path_m`` (M,), non-decreasing) over the cells its free part
     crosses and the cell of its return, updating ``last`` / ``revisited`` (ny, nx) (:func:`_visit`)."""
+    cells = np.empty((grid.nx + grid.ny, 2), np.int64)
     for i in range(origins.shape[0]):
-        w, ex, ey, steps = segment_walk(
-            grid, origins[i, 0], origins[i, 1], free_ends[i, 0], free_ends[i, 1], False
-        )
-        n = 0
-        while True:
-            if in_grid(grid, w.ix, w.iy):
-                _visit(w.ix, w.iy, path_m[i], gap_m, last, revisited)
-            n += 1
-            if (w.ix == ex and w.iy == ey) or n > steps:
-                break
-            w = walk_next(w)
+        for k in range(
+            segment_cells(grid, origins[i, 0], origins[i, 1], free_ends[i, 0], free_ends[i, 1], cells)
+        ):
+            _visit(cells[k, 0], cells[k, 1], path_m[i], gap_m, last, revisited)
         if is_hit[i]:
-            ix = math.floor((ends[i, 0] - grid.x0) / grid.cell)
-            iy = math.floor((ends[i, 1] - grid.y0) / grid.cell)
+            ix, iy = point_cell(grid, ends[i, 0], ends[i, 1])
             if in_grid(grid, ix, iy):
                 _visit(ix, iy, path_m[i], gap_m, last, revisited)
 

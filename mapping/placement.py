@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from mapping.beams import Beams
 from mapping.exports import MapLayers
 from mapping.gppol import SensorNoise, input_moments
-from mapping.raster import GridGeometry, in_grid, segment_walk, walk_next
+from mapping.raster import GridGeometry, in_grid, point_cell, segment_cells
 
 FloatArray = NDArray[np.float64]
 
@@ -43,40 +43,35 @@ def _largest_variance(c0, c1, c2, i, d):
     return max(0.5 * (a + c) + math.sqrt(half * half + b * b), 0.0)
 
 
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _keep_smaller(out, ix, iy, v):
+    if v < out[iy, ix]:
+        out[iy, ix] = v
+
+
 @nb.njit(cache=True, error_model="numpy")
 def _smallest_variances(origins, free_ends, ends, is_hit, ranges, c0, c1, c2, grid, out):
     """``out`` (ny, nx) <- per cell the smallest largest-eigenvalue over the beams touching it (cells no
     beam touches keep their value)."""
+    cells = np.empty((grid.nx + grid.ny, 2), np.int64)
     for i in range(origins.shape[0]):
         ox = origins[i, 0]
         oy = origins[i, 1]
-        fx = free_ends[i, 0]
-        fy = free_ends[i, 1]
-        length = math.hypot(fx - ox, fy - oy)
+        length = math.hypot(free_ends[i, 0] - ox, free_ends[i, 1] - oy)
         if length > 0.0:
-            ux = (fx - ox) / length
-            uy = (fy - oy) / length
-            w, ex, ey, steps = segment_walk(grid, ox, oy, fx, fy, False)
-            n = 0
-            while True:
-                if in_grid(grid, w.ix, w.iy):
-                    cx = grid.x0 + (w.ix + 0.5) * grid.cell - ox
-                    cy = grid.y0 + (w.iy + 0.5) * grid.cell - oy
-                    d = min(max(cx * ux + cy * uy, 0.0), length)
-                    v = _largest_variance(c0, c1, c2, i, d)
-                    if v < out[w.iy, w.ix]:
-                        out[w.iy, w.ix] = v
-                n += 1
-                if (w.ix == ex and w.iy == ey) or n > steps:
-                    break
-                w = walk_next(w)
+            ux = (free_ends[i, 0] - ox) / length
+            uy = (free_ends[i, 1] - oy) / length
+            for k in range(segment_cells(grid, ox, oy, free_ends[i, 0], free_ends[i, 1], cells)):
+                ix, iy = cells[k, 0], cells[k, 1]
+                # the distance along the beam of the cell centre's foot on it
+                cx = grid.x0 + (ix + 0.5) * grid.cell - ox
+                cy = grid.y0 + (iy + 0.5) * grid.cell - oy
+                d = min(max(cx * ux + cy * uy, 0.0), length)
+                _keep_smaller(out, ix, iy, _largest_variance(c0, c1, c2, i, d))
         if is_hit[i]:
-            ix = math.floor((ends[i, 0] - grid.x0) / grid.cell)
-            iy = math.floor((ends[i, 1] - grid.y0) / grid.cell)
+            ix, iy = point_cell(grid, ends[i, 0], ends[i, 1])
             if in_grid(grid, ix, iy):
-                v = _largest_variance(c0, c1, c2, i, ranges[i])
-                if v < out[iy, ix]:
-                    out[iy, ix] = v
+                _keep_smaller(out, ix, iy, _largest_variance(c0, c1, c2, i, ranges[i]))
 
 
 def placement_sigma_m(

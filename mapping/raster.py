@@ -11,7 +11,9 @@ The cell walk (Amanatides & Woo, "A fast voxel traversal algorithm for ray traci
 order, the cells a segment crosses, one cell boundary at a time: :func:`segment_walk` starts it and
 :func:`walk_next` steps it. The callers own the loop, as they stop, clip and act on cells differently: the
 segment index lists the cells of a beam (start and end clamped into the grid, stopping where the walk
-leaves it), the baseline updates the cells of a ray (anywhere, out-of-grid cells skipped). The walk is
+leaves it), the baseline updates the cells of a ray (anywhere, out-of-grid cells skipped).
+:func:`segment_cells` lists the in-grid cells of a segment for callers that only act on each of them (the
+placement layer, the evaluation's pass masks). The walk is
 exact up to round-off: a segment through a cell corner steps in x or in y, not diagonally.
 
 The distance transform of a raster mask (:func:`squared_distances_cells`, :func:`within_distance`) gives
@@ -114,6 +116,31 @@ def walk_next(w):
     if w.tmx < w.tmy:
         return CellWalk(w.ix + w.sx, w.iy, w.sx, w.sy, w.tmx + w.tdx, w.tmy, w.tdx, w.tdy)
     return CellWalk(w.ix, w.iy + w.sy, w.sx, w.sy, w.tmx, w.tmy + w.tdy, w.tdx, w.tdy)
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def point_cell(grid, x, y):
+    """The cell (ix, iy) holding (x, y), which may lie outside the grid (:func:`in_grid` tells)."""
+    return math.floor((x - grid.x0) / grid.cell), math.floor((y - grid.y0) / grid.cell)
+
+
+@nb.njit(cache=True, error_model="numpy")
+def segment_cells(grid, x0, y0, x1, y1, out):
+    """The cells of ``grid`` the segment (x0, y0)-(x1, y1) crosses, in walking order, those outside the
+    grid left out: rows (ix, iy) of ``out`` (int64, at least ``nx + ny`` rows: the walk is monotone in x and
+    y, so it crosses at most ``nx + ny - 1`` cells of the grid); returns how many."""
+    w, ex, ey, steps = segment_walk(grid, x0, y0, x1, y1, False)
+    n = 0
+    k = 0
+    while True:
+        if in_grid(grid, w.ix, w.iy):
+            out[k, 0] = w.ix
+            out[k, 1] = w.iy
+            k += 1
+        n += 1
+        if (w.ix == ex and w.iy == ey) or n > steps:
+            return k
+        w = walk_next(w)
 
 
 def squared_distances_cells(marked: NDArray[np.bool_]) -> NDArray[np.float64]:

@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 
 from mapping.index import _segment_cells, rings_next, rings_start
-from mapping.raster import GridGeometry, segment_walk, squared_distances_cells, walk_next, within_distance
+from mapping.raster import (
+    GridGeometry,
+    point_cell,
+    segment_cells,
+    segment_walk,
+    squared_distances_cells,
+    walk_next,
+    within_distance,
+)
 
 GRID = GridGeometry.of(-1.3, 0.7, 0.37, 23, 17)
 
@@ -51,6 +59,19 @@ def test_the_cell_walk_visits_the_cells_of_a_supersampled_segment_in_order() -> 
 )
 def test_axis_parallel_and_degenerate_walks(p0, p1) -> None:
     assert walked_cells(GRID, p0, p1) == sampled_cells(GRID, p0, p1)
+
+
+def test_segment_cells_lists_the_walks_cells_inside_the_grid() -> None:
+    out = np.empty((GRID.nx + GRID.ny, 2), np.int64)  # the bound it documents
+    inside_some = 0
+    for s in random_segments(300, 1, -8.0, 14.0):  # many cross the grid's border or miss it
+        p0, p1 = s[:2], s[2:]
+        want = [c for c in sampled_cells(GRID, p0, p1) if 0 <= c[0] < GRID.nx and 0 <= c[1] < GRID.ny]
+        n = segment_cells(GRID, p0[0], p0[1], p1[0], p1[1], out)
+        assert [tuple(int(v) for v in row) for row in out[:n]] == want
+        inside_some += n > 0
+    assert 0 < inside_some < 300
+    assert point_cell(GRID, -1.3 + 0.37 * 2.5, 0.7 - 0.1) == (2, -1)
 
 
 def test_the_segment_index_lists_the_cells_each_segment_crosses() -> None:
