@@ -140,19 +140,16 @@ def write_maps(
     # The exploration plans and the bag, and the data files, are written in worker threads, the figures
     # drawn in this one (matplotlib is not thread-safe): most of the writers' time is compression and
     # copying, which release the GIL. Only the plans run parallel compiled loops, so no two threads launch
-    # them at once (numba's default threading layer does not allow that).
+    # them at once (numba's workqueue threading layer, its fallback without OpenMP, does not allow that).
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="export") as pool:
         bag_written = pool.submit(
             _write_bag, bag, maps, params, settings, trajectories, closures_xy_m, stamp_ns
         )
         data = {name: pool.submit(write_map_data, maps_dir / name, m) for name, m in maps.items()}
-        figures: dict[str, list[Path]] = {}
-        if export.png:
-            figures = _write_figures(maps_dir, maps, trajectories, closures_xy_m, cfg, ate_m)
-        files = [f for name in maps for f in data[name].result() + figures.get(name, [])]
-        files += figures.get("", [])
-        files.append(bag_written.result())
-    return files
+        figures = (
+            _write_figures(maps_dir, maps, trajectories, closures_xy_m, cfg, ate_m) if export.png else []
+        )
+        return [f for name in maps for f in data[name].result()] + figures + [bag_written.result()]
 
 
 def _write_figures(
@@ -162,15 +159,15 @@ def _write_figures(
     closures_xy_m: NDArray | None,
     cfg: MappingConfig,
     ate_m: dict[str, float | None],
-) -> dict[str, list[Path]]:
-    """Each map's PNGs (by name), and under "" the before / after comparison and difference figures."""
-    out: dict[str, list[Path]] = {}
+) -> list[Path]:
+    """Each map's PNGs, then the before / after comparison and difference figures when there are both."""
+    out: list[Path] = []
     for name, layers in maps.items():
         title = f"{name} loop closure" if name in ("before", "after") else name
         path_xy_m = trajectories[name].poses_xytheta[:, :2]
-        out[name] = write_map_figures(maps_dir / name, layers, cfg, title, path_xy_m, ate_m.get(name))
+        out += write_map_figures(maps_dir / name, layers, cfg, title, path_xy_m, ate_m.get(name))
     if {"before", "after"} <= set(maps):
-        out[""] = [
+        out += [
             plot_before_after_maps(
                 maps["before"],
                 maps["after"],

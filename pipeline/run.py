@@ -240,8 +240,10 @@ def run_pipeline(
         with timer("evaluate"):
             metrics = evaluate_run(input_path, rec, slam, maps, layers, config.slam.consistency.revisit_gap_m)
         with timer("export"), progress.stage("export", total=1) as bar:
-            world = {"before": slam.cov_before_xytheta, "after": slam.cov_after_xytheta}
-            layers = {name: with_placement(m, maps[name].beams, world[name]) for name, m in layers.items()}
+            layers = {
+                name: with_placement(m, maps[name].beams, mapper_covariances(slam, name, "world"))
+                for name, m in layers.items()
+            }
             write_maps(
                 stage / "maps",
                 layers,
@@ -275,7 +277,7 @@ def evaluate_run(
     slam: SlamResult,
     maps: dict[str, IncrementalMap],
     layers: dict[str, MapLayers],
-    revisit_gap_m: float = 10.0,
+    revisit_gap_m: float,
 ) -> dict[str, Any]:
     """ATE before / after against the recording's reference poses, AUC before / after against a
     ground-truth raster beside the input (simulated worlds: the rendered ``layers`` where the raster's cells
