@@ -16,8 +16,11 @@ trajectories before and after loop closure:
   ``t1`` / ``t2`` are those of the scans with these stamps (the scan stamps, or the CARMEN logger stamps when
   they fit more relations), within ``STAMP_TOLERANCE_NS``.
 
-Poses are compared in the laser frame (the base poses composed with each recording's laser mounting), the
-frame of corrected CARMEN logs. The returned dict has the SPEC keys ``relations`` and ``ate_rmse_m`` (null
+Against a reference, poses are compared in the laser frame (the base poses composed with each recording's
+laser mounting), the frame of corrected CARMEN logs. Against relations they are compared in the robot's base
+frame: the benchmark's relations are between poses of the robot (Kuemmerle et al. 2009 compute everything
+"based on the corrected trajectory of the robot"), and on the logs whose laser sits off the base they fit the
+base poses, not the laser's (docs/evaluation.md). The returned dict has the SPEC keys ``relations`` and ``ate_rmse_m`` (null
 when their input is absent) plus ``table`` (what the CLI prints) and details.
 """
 
@@ -269,14 +272,15 @@ def match_relations(rec: Recording, relations: Any, relations_path: str | Path) 
 
 
 def score_relations(rec: Recording, result: SlamResult, relations: Any, matched: tuple) -> dict[str, Any]:
-    """The relations metric (SPEC keys) of the trajectory after loop closure, plus ``before`` and counts."""
+    """The relations metric (SPEC keys) of the trajectory after loop closure, plus ``before`` and counts.
+
+    The relations are of the robot's base poses (module docstring), so the base poses are scored as they are.
+    """
     name, ok, i1, i2 = matched
-    mount = rec.laser_in_base_xytheta
     target = np.column_stack([relations.xyz_m[ok, :2], relations.rpy_rad[ok, 2]])
     out: dict[str, Any] = {}
-    for which, poses in (("after", result.poses_after_xytheta), ("before", result.poses_before_xytheta)):
-        laser = _laser_poses(poses, mount)
-        errs = metrics.relation_errors(laser[i1[ok]], laser[i2[ok]], target).as_dict()
+    for which, base in (("after", result.poses_after_xytheta), ("before", result.poses_before_xytheta)):
+        errs = metrics.relation_errors(base[i1[ok]], base[i2[ok]], target).as_dict()
         if which == "after":
             out.update(errs)
         else:
