@@ -20,8 +20,8 @@ Against a reference, poses are compared in the laser frame (the base poses compo
 laser mounting), the frame of corrected CARMEN logs. Against relations they are compared in the robot's base
 frame: the benchmark's relations are between poses of the robot (Kuemmerle et al. 2009 compute everything
 "based on the corrected trajectory of the robot"), and on the logs whose laser sits off the base they fit the
-base poses, not the laser's (docs/evaluation.md). The returned dict has the SPEC keys ``relations`` and ``ate_rmse_m`` (null
-when their input is absent) plus ``table`` (what the CLI prints) and details.
+base poses, not the laser's (docs/evaluation.md). The returned dict has the SPEC keys ``relations`` and
+``ate_rmse_m`` (null when their input is absent) plus ``table`` (what the CLI prints) and details.
 """
 
 from __future__ import annotations
