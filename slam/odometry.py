@@ -343,185 +343,273 @@ def run_odometry(
     """Register every scan (list of (P_i, 2) base-frame points, in scan order) against its submap.
 
     ``wheel_poses_xytheta`` (N, 3): the wheel odometry at each scan, or None; a NaN row marks a gap in the
-    wheel records (the steps into and out of that scan are registered as without wheels). Returns an
+    wheel records (the steps into and out of that scan are registered as without wheels). Per scan, the
+    named steps of :class:`_Odometer`: predict the pose, register the scan around the prediction (search,
+    refinement, gates, a wider retry), keep the registration or fall back on the prediction, then keep the
+    submaps (a fresh start after a run of rejections, the scan inserted when it moved enough). Returns an
     :class:`OdometryResult`.
     """
     n = len(points_base)
-    poses = np.zeros((n, 3))
-    covs = np.zeros((n, 3, 3))
-    status = np.zeros(n, dtype=np.int8)
-    inliers = np.zeros(n)
-    rms = np.full(n, np.nan)
-    submaps = _Submaps(cfg)
-    kiss = _KissRegistration(cfg) if cfg.matcher == "kiss_icp" else None
-    t_match = 0.0
-    t_insert = 0.0
-    t_normals = 0.0
-    if wheel_poses_xytheta is not None:
-        wheel = np.asarray(wheel_poses_xytheta, dtype=np.float64)
-        wheel_inc = se2.between(wheel[:-1], wheel[1:])
-        if np.all(np.isfinite(wheel[0])):
-            poses[0] = wheel[0]
-    else:
-        wheel_inc = None
-    last_inc = np.zeros(3)
-    velocity_known = False  # without wheels: last_inc comes from two registered scans
-    fallback_run = 0  # consecutive rejected registrations
-    short_steps = 0  # consecutive registered steps within no_wheels_dense_step_*
-    restarts = 0
-    retries = 0
-    last_insert: FloatArray | None = None
+    odometer = _Odometer(n, wheel_poses_xytheta, cfg)
     chunk = max(1, n // 200)
     with stage(progress, "odometry", n) as bar:
         for i in range(n):
             pts = points_base[i]
-            nrm = None
-            if i > 0:
-                # a wheel increment with NaN is unknown (a gap in the wheel records): a step without wheels
-                wheels = wheel_inc is not None and bool(np.all(np.isfinite(wheel_inc[i - 1])))
-                inc = wheel_inc[i - 1] if wheels else last_inc
-                pred = se2.compose(poses[i - 1], inc)
-                cov_inc = wheel_increment_cov(inc, cfg)
-                if not wheels:
-                    cov_inc = np.diag([cfg.no_wheels_sigma_m**2] * 2 + [cfg.no_wheels_sigma_rad**2])
-                cov_pred_w = se2.rotate_cov_to_world(pred, cov_inc)
-                target = submaps.target
-                accepted = False
-                if target is not None and pts.shape[0] >= cfg.min_points:
-                    if cfg.normal_check:
-                        t0 = time.perf_counter()
-                        nrm = scan_normals(
-                            pts,
-                            cfg.normal_radius_m,
-                            cfg.normal_max_neighbours,
-                            radius_per_m=cfg.normal_radius_per_m,
-                        )
-                        t_normals += time.perf_counter() - t0
-                    t0 = time.perf_counter()
-                    dense = False
-                    if not wheels:  # a constant-velocity guess: search wide, prefer the guess
-                        window_m = max(cfg.search_window_m, cfg.no_wheels_window_m)
-                        window_rad = max(cfg.search_window_rad, cfg.no_wheels_window_rad)
-                        dense = velocity_known and short_steps >= 3
-                        if dense:  # scans a few centimetres apart: a compact window suffices
-                            window_m = min(window_m, cfg.no_wheels_dense_window_m)
-                            window_rad = min(window_rad, cfg.no_wheels_dense_window_rad)
-                    else:  # the window covers 3 sigma of the wheel increment (sparse logs: ~1 m steps)
-                        window_m = max(cfg.search_window_m, 3.0 * math.sqrt(cov_inc[0, 0]))
-                        window_rad = cfg.search_window_rad + 0.3 * abs(inc[2])
-                    if kiss is not None:
-                        start = kiss.align(pts, pred)
-                    else:
-                        # the motion prior of a wide search; none before the velocity is known
-                        sigma = (math.sqrt(cov_inc[0, 0]), math.sqrt(cov_inc[2, 2]))
-                        w = cfg.search_prior_weight if wheels or velocity_known else 0.0
-                        start = search_window(
-                            target, pts, pred, window_m, window_rad, cfg.search_step_rad, sigma, w, dense
-                        ).pose_xytheta
-                    prior_info = np.linalg.inv(cov_pred_w)
-                    al, pose, hessian = _refine(target, pts, start, pred, prior_info, nrm, cfg, kiss is None)
-                    frac = al.inliers / pts.shape[0]
-                    dev = se2.between(pred, pose)
-                    gate_xy_m = max(cfg.gate_xy_m, math.sqrt(2.0) * window_m)
-                    if wheels:
-                        accepted = (
-                            frac >= cfg.min_inlier_fraction
-                            and math.hypot(dev[0], dev[1]) <= gate_xy_m
-                            and abs(dev[2]) <= max(cfg.gate_theta_rad, window_rad)
-                        )
-                    else:  # the guess is no fallback: a match better than chance is kept
-                        reach_m = math.sqrt(2.0) * window_m + cfg.gate_xy_m
-                        accepted = frac >= cfg.no_wheels_min_inliers and math.hypot(dev[0], dev[1]) <= reach_m
-                    if (
-                        wheels
-                        and kiss is None
-                        and (frac < cfg.retry_below_inliers or not accepted)
-                        and window_rad < cfg.retry_window_rad
-                    ):
-                        # a poor match or a rejected one: the wheels may have turned wrong by more than the
-                        # window (sparse logs: 10-20 deg between keyframes); search every heading within
-                        # retry_window_rad, without a prior, and keep that match if it explains more of the
-                        # scan, or if it passes the gates (rotation: that window) where the first did not
-                        wide = search_window(
-                            target, pts, pred, window_m, cfg.retry_window_rad, cfg.search_step_rad
-                        ).pose_xytheta
-                        al2, pose2, hessian2 = _refine(target, pts, wide, pred, prior_info, nrm, cfg, True)
-                        frac2 = al2.inliers / pts.shape[0]
-                        dev2 = se2.between(pred, pose2)
-                        if (
-                            frac2 >= cfg.min_inlier_fraction
-                            and (frac2 > frac or not accepted)
-                            and math.hypot(dev2[0], dev2[1]) <= gate_xy_m
-                            and abs(dev2[2]) <= cfg.retry_window_rad
-                        ):
-                            al, pose, hessian, frac, accepted = al2, pose2, hessian2, frac2, True
-                        retries += 1
-                    t_match += time.perf_counter() - t0
-                    inliers[i] = frac
-                    rms[i] = al.rms_m
-                if accepted:
-                    poses[i] = pose
-                    sigma = (
-                        max(al.rms_m, cfg.min_point_sigma_m)
-                        if cfg.sigma_from_residuals
-                        else cfg.point_sigma_m
-                    )
-                    covs[i] = np.linalg.inv(hessian / sigma**2 + prior_info)
-                    status[i] = MATCHED
-                else:
-                    poses[i] = pred
-                    covs[i] = se2.rotate_cov_to_world(
-                        pred,
-                        se2.compose_cov_body(se2.rotate_cov_to_body(poses[i - 1], covs[i - 1]), inc, cov_inc),
-                    )
-                    status[i] = FALLBACK if pts.shape[0] >= cfg.min_points else TOO_FEW_POINTS
-                last_inc = se2.between(poses[i - 1], poses[i])
-                velocity_known = status[i] == MATCHED
-                short = (
-                    velocity_known
-                    and math.hypot(last_inc[0], last_inc[1]) <= cfg.no_wheels_dense_step_m
-                    and abs(last_inc[2]) <= cfg.no_wheels_dense_step_rad
-                )
-                short_steps = short_steps + 1 if short else 0
+            if i == 0:
+                odometer.first(pts)
             else:
-                status[i] = FIRST if pts.shape[0] >= cfg.min_points else TOO_FEW_POINTS
-            # a run of rejected registrations means the submap no longer covers the scans (the robot left
-            # it): start a new one from the wheel pose, or the odometry never recovers
-            fallback_run = fallback_run + 1 if status[i] in (FALLBACK, TOO_FEW_POINTS) else 0
-            restart = fallback_run >= cfg.submap_restart_fallbacks and pts.shape[0] >= cfg.min_points
-            if restart:
-                submaps.clear()
-                if kiss is not None:
-                    kiss.reset()
-                fallback_run = 0
-                restarts += 1
-            # insert registered scans that moved enough into the submaps
-            if restart or (
-                status[i] in (FIRST, MATCHED)
-                and (
-                    last_insert is None
-                    or math.hypot(*(poses[i, :2] - last_insert[:2])) >= cfg.insert_distance_m
-                    or abs(se2.wrap(poses[i, 2] - last_insert[2])) >= cfg.insert_rotation_rad
-                )
-            ):
-                if nrm is None:
-                    t0 = time.perf_counter()
-                    nrm = scan_normals(
-                        pts,
-                        cfg.normal_radius_m,
-                        cfg.normal_max_neighbours,
-                        radius_per_m=cfg.normal_radius_per_m,
-                    )
-                    t_normals += time.perf_counter() - t0
-                t0 = time.perf_counter()
-                submaps.insert(poses[i], pts, nrm)
-                if kiss is not None:
-                    kiss.insert(poses[i], pts)
-                t_insert += time.perf_counter() - t0
-                last_insert = poses[i].copy()
+                motion = odometer.predict(i)
+                odometer.record(i, pts, motion, odometer.register(i, pts, motion))
+            odometer.keep_submaps(i, pts)
             if (i + 1) % chunk == 0:
                 bar.advance(chunk)
         if n % chunk:
             bar.advance(n % chunk)
-    timings = {"odometry_match_s": t_match, "odometry_insert_s": t_insert, "odometry_normals_s": t_normals}
-    return OdometryResult(poses, covs, status, inliers, rms, points_base, timings, restarts, retries)
+    return odometer.result(points_base)
+
+
+@dataclass(frozen=True)
+class _Motion:
+    """The predicted pose of scan ``i``: from the wheels (``wheels``) or the last increment; ``inc`` (3,)
+    the increment used, ``cov_inc`` (3, 3) its child-frame covariance, ``pose`` (3,) the prediction and
+    ``prior_info`` (3, 3) its world-frame information (the registration's prior)."""
+
+    wheels: bool
+    inc: FloatArray
+    cov_inc: FloatArray
+    pose: FloatArray
+    prior_info: FloatArray
+
+
+@dataclass
+class _Registration:
+    """One scan's registration: the refinement's alignment, pose (3,) and information (3, 3), the fraction
+    of its points matched, and whether the gates keep it."""
+
+    al: Alignment
+    pose: FloatArray
+    hessian: FloatArray
+    frac: float
+    accepted: bool
+
+
+class _Odometer:
+    """The state of :func:`run_odometry` while it walks the scans, and its steps."""
+
+    def __init__(self, n: int, wheel_poses_xytheta: FloatArray | None, cfg: OdometryConfig) -> None:
+        self.cfg = cfg
+        self.poses = np.zeros((n, 3))
+        self.covs = np.zeros((n, 3, 3))
+        self.status = np.zeros(n, dtype=np.int8)
+        self.inliers = np.zeros(n)
+        self.rms = np.full(n, np.nan)
+        self.submaps = _Submaps(cfg)
+        self.kiss = _KissRegistration(cfg) if cfg.matcher == "kiss_icp" else None
+        self.wheel_inc: FloatArray | None = None
+        if wheel_poses_xytheta is not None:
+            wheel = np.asarray(wheel_poses_xytheta, dtype=np.float64)
+            self.wheel_inc = se2.between(wheel[:-1], wheel[1:])
+            if np.all(np.isfinite(wheel[0])):
+                self.poses[0] = wheel[0]
+        self.last_inc = np.zeros(3)
+        self.velocity_known = False  # without wheels: last_inc comes from two registered scans
+        self.fallback_run = 0  # consecutive rejected registrations
+        self.short_steps = 0  # consecutive registered steps within no_wheels_dense_step_*
+        self.restarts = 0
+        self.retries = 0
+        self.last_insert: FloatArray | None = None
+        self.normals: FloatArray | None = None  # of the current scan, once computed
+        self.timings = {"odometry_match_s": 0.0, "odometry_insert_s": 0.0, "odometry_normals_s": 0.0}
+
+    def first(self, pts: FloatArray) -> None:
+        """The first scan: the origin of the odometry (or the first wheel pose)."""
+        self.normals = None
+        self.status[0] = FIRST if pts.shape[0] >= self.cfg.min_points else TOO_FEW_POINTS
+
+    def predict(self, i: int) -> _Motion:
+        """Scan ``i``'s pose predicted by the wheels, or without them (a NaN increment: a gap in the wheel
+        records) by the last increment, with the covariance of that increment."""
+        cfg = self.cfg
+        wheels = self.wheel_inc is not None and bool(np.all(np.isfinite(self.wheel_inc[i - 1])))
+        inc = self.wheel_inc[i - 1] if wheels else self.last_inc
+        pred = se2.compose(self.poses[i - 1], inc)
+        cov_inc = wheel_increment_cov(inc, cfg)
+        if not wheels:
+            cov_inc = np.diag([cfg.no_wheels_sigma_m**2] * 2 + [cfg.no_wheels_sigma_rad**2])
+        prior_info = np.linalg.inv(se2.rotate_cov_to_world(pred, cov_inc))
+        return _Motion(wheels, inc, cov_inc, pred, prior_info)
+
+    def _windows(self, motion: _Motion) -> tuple[float, float, bool]:
+        """``(window_m, window_rad, dense)`` of the search around the prediction."""
+        cfg = self.cfg
+        if motion.wheels:  # the window covers 3 sigma of the wheel increment (sparse logs: ~1 m steps)
+            window_m = max(cfg.search_window_m, 3.0 * math.sqrt(motion.cov_inc[0, 0]))
+            return window_m, cfg.search_window_rad + 0.3 * abs(motion.inc[2]), False
+        # a constant-velocity guess: search wide, prefer the guess
+        window_m = max(cfg.search_window_m, cfg.no_wheels_window_m)
+        window_rad = max(cfg.search_window_rad, cfg.no_wheels_window_rad)
+        dense = self.velocity_known and self.short_steps >= 3
+        if dense:  # scans a few centimetres apart: a compact window suffices
+            window_m = min(window_m, cfg.no_wheels_dense_window_m)
+            window_rad = min(window_rad, cfg.no_wheels_dense_window_rad)
+        return window_m, window_rad, dense
+
+    def register(self, i: int, pts: FloatArray, motion: _Motion) -> _Registration | None:
+        """Scan ``i`` registered against the older submap around the prediction: the correlative search
+        (or KISS-ICP), the point-to-line refinement with the prediction as prior, the gates, and a wider
+        retry of a poor or rejected wheel-seeded match. None when there is no submap or too few points."""
+        cfg = self.cfg
+        self.normals = None
+        target = self.submaps.target
+        if target is None or pts.shape[0] < cfg.min_points:
+            return None
+        if cfg.normal_check:
+            self.normals = self._normals(pts)
+        t0 = time.perf_counter()
+        window_m, window_rad, dense = self._windows(motion)
+        if self.kiss is not None:
+            start = self.kiss.align(pts, motion.pose)
+        else:
+            # the motion prior of a wide search; none before the velocity is known
+            sigma = (math.sqrt(motion.cov_inc[0, 0]), math.sqrt(motion.cov_inc[2, 2]))
+            w = cfg.search_prior_weight if motion.wheels or self.velocity_known else 0.0
+            start = search_window(
+                target, pts, motion.pose, window_m, window_rad, cfg.search_step_rad, sigma, w, dense
+            ).pose_xytheta
+        al, pose, hessian = _refine(
+            target, pts, start, motion.pose, motion.prior_info, self.normals, cfg, self.kiss is None
+        )
+        reg = _Registration(al, pose, hessian, al.inliers / pts.shape[0], False)
+        gate_xy_m = max(cfg.gate_xy_m, math.sqrt(2.0) * window_m)
+        dev = se2.between(motion.pose, pose)
+        if motion.wheels:
+            reg.accepted = (
+                reg.frac >= cfg.min_inlier_fraction
+                and math.hypot(dev[0], dev[1]) <= gate_xy_m
+                and abs(dev[2]) <= max(cfg.gate_theta_rad, window_rad)
+            )
+        else:  # the guess is no fallback: a match better than chance is kept
+            reach_m = math.sqrt(2.0) * window_m + cfg.gate_xy_m
+            reg.accepted = reg.frac >= cfg.no_wheels_min_inliers and math.hypot(dev[0], dev[1]) <= reach_m
+        if (
+            motion.wheels
+            and self.kiss is None
+            and (reg.frac < cfg.retry_below_inliers or not reg.accepted)
+            and window_rad < cfg.retry_window_rad
+        ):
+            reg = self._retry(target, pts, motion, window_m, gate_xy_m, reg)
+        self.timings["odometry_match_s"] += time.perf_counter() - t0
+        self.inliers[i] = reg.frac
+        self.rms[i] = reg.al.rms_m
+        return reg
+
+    def _retry(
+        self,
+        target: PointGrid,
+        pts: FloatArray,
+        motion: _Motion,
+        window_m: float,
+        gate_xy_m: float,
+        reg: _Registration,
+    ) -> _Registration:
+        """A poor match or a rejected one: the wheels may have turned wrong by more than the window (sparse
+        logs: 10-20 deg between keyframes); search every heading within retry_window_rad, without a prior,
+        and keep that match if it explains more of the scan, or if it passes the gates (rotation: that
+        window) where the first did not."""
+        cfg = self.cfg
+        wide = search_window(
+            target, pts, motion.pose, window_m, cfg.retry_window_rad, cfg.search_step_rad
+        ).pose_xytheta
+        al2, pose2, hessian2 = _refine(
+            target, pts, wide, motion.pose, motion.prior_info, self.normals, cfg, True
+        )
+        frac2 = al2.inliers / pts.shape[0]
+        dev2 = se2.between(motion.pose, pose2)
+        self.retries += 1
+        if (
+            frac2 >= cfg.min_inlier_fraction
+            and (frac2 > reg.frac or not reg.accepted)
+            and math.hypot(dev2[0], dev2[1]) <= gate_xy_m
+            and abs(dev2[2]) <= cfg.retry_window_rad
+        ):
+            return _Registration(al2, pose2, hessian2, frac2, True)
+        return reg
+
+    def record(self, i: int, pts: FloatArray, motion: _Motion, reg: _Registration | None) -> None:
+        """Scan ``i``'s pose and covariance: the kept registration's, ``(H / sigma^2 + Lambda)^-1``, or the
+        prediction with the wheel uncertainty accumulated since the last registered scan."""
+        cfg = self.cfg
+        if reg is not None and reg.accepted:
+            self.poses[i] = reg.pose
+            sigma = (
+                max(reg.al.rms_m, cfg.min_point_sigma_m) if cfg.sigma_from_residuals else cfg.point_sigma_m
+            )
+            self.covs[i] = np.linalg.inv(reg.hessian / sigma**2 + motion.prior_info)
+            self.status[i] = MATCHED
+        else:
+            self.poses[i] = motion.pose
+            cov_prev_body = se2.rotate_cov_to_body(self.poses[i - 1], self.covs[i - 1])
+            self.covs[i] = se2.rotate_cov_to_world(
+                motion.pose, se2.compose_cov_body(cov_prev_body, motion.inc, motion.cov_inc)
+            )
+            self.status[i] = FALLBACK if pts.shape[0] >= cfg.min_points else TOO_FEW_POINTS
+        self.last_inc = se2.between(self.poses[i - 1], self.poses[i])
+        self.velocity_known = self.status[i] == MATCHED
+        short = (
+            self.velocity_known
+            and math.hypot(self.last_inc[0], self.last_inc[1]) <= cfg.no_wheels_dense_step_m
+            and abs(self.last_inc[2]) <= cfg.no_wheels_dense_step_rad
+        )
+        self.short_steps = self.short_steps + 1 if short else 0
+
+    def keep_submaps(self, i: int, pts: FloatArray) -> None:
+        """A run of rejected registrations means the submap no longer covers the scans (the robot left it):
+        start a new one from the current pose, or the odometry never recovers. A registered scan that moved
+        enough since the last insertion (and the first scan of a new submap) goes into the submaps."""
+        cfg = self.cfg
+        rejected = self.status[i] in (FALLBACK, TOO_FEW_POINTS)
+        self.fallback_run = self.fallback_run + 1 if rejected else 0
+        restart = self.fallback_run >= cfg.submap_restart_fallbacks and pts.shape[0] >= cfg.min_points
+        if restart:
+            self.submaps.clear()
+            if self.kiss is not None:
+                self.kiss.reset()
+            self.fallback_run = 0
+            self.restarts += 1
+        last = self.last_insert
+        moved = (
+            last is None
+            or math.hypot(*(self.poses[i, :2] - last[:2])) >= cfg.insert_distance_m
+            or abs(se2.wrap(self.poses[i, 2] - last[2])) >= cfg.insert_rotation_rad
+        )
+        if not (restart or (self.status[i] in (FIRST, MATCHED) and moved)):
+            return
+        normals = self.normals if self.normals is not None else self._normals(pts)
+        t0 = time.perf_counter()
+        self.submaps.insert(self.poses[i], pts, normals)
+        if self.kiss is not None:
+            self.kiss.insert(self.poses[i], pts)
+        self.timings["odometry_insert_s"] += time.perf_counter() - t0
+        self.last_insert = self.poses[i].copy()
+
+    def _normals(self, pts: FloatArray) -> FloatArray:
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        nrm = scan_normals(
+            pts, cfg.normal_radius_m, cfg.normal_max_neighbours, radius_per_m=cfg.normal_radius_per_m
+        )
+        self.timings["odometry_normals_s"] += time.perf_counter() - t0
+        return nrm
+
+    def result(self, points_base: list[FloatArray]) -> OdometryResult:
+        return OdometryResult(
+            self.poses,
+            self.covs,
+            self.status,
+            self.inliers,
+            self.rms,
+            points_base,
+            dict(self.timings),
+            self.restarts,
+            self.retries,
+        )
