@@ -356,25 +356,43 @@ def _csm(
     best = np.full((top_k, 4), -1.0)
     ixs = np.empty(p, dtype=np.int64)
     iys = np.empty(p, dtype=np.int64)
+    flat = score.ravel()
+    reach = n_lin * lin_step_cells
     for a in range(-n_ang, n_ang + 1):
         th = ctheta + a * ang_step
         c = math.cos(th)
         s = math.sin(th)
+        lo_x, hi_x, lo_y, hi_y = w, -1, h, -1
         for k in range(p):
             qx = c * points[k, 0] - s * points[k, 1] + cx
             qy = s * points[k, 0] + c * points[k, 1] + cy
             ixs[k] = math.floor((qx - x0) / res)
             iys[k] = math.floor((qy - y0) / res)
+            lo_x = min(lo_x, ixs[k])
+            hi_x = max(hi_x, ixs[k])
+            lo_y = min(lo_y, iys[k])
+            hi_y = max(hi_y, iys[k])
+        # every shifted point inside the grid (the usual case: submaps reach past the laser's range): no
+        # bounds test per point, and one flat index per point (the same sums, in the same order)
+        inside = lo_x - reach >= 0 and hi_x + reach < w and lo_y - reach >= 0 and hi_y + reach < h
+        if inside:
+            for k in range(p):
+                ixs[k] = iys[k] * w + ixs[k]
         for dyi in range(-n_lin, n_lin + 1):
             dy = dyi * lin_step_cells
             for dxi in range(-n_lin, n_lin + 1):
                 dx = dxi * lin_step_cells
                 tot = 0.0
-                for k in range(p):
-                    jx = ixs[k] + dx
-                    jy = iys[k] + dy
-                    if 0 <= jx < w and 0 <= jy < h:
-                        tot += score[jy, jx]
+                if inside:
+                    shift = dy * w + dx
+                    for k in range(p):
+                        tot += flat[ixs[k] + shift]
+                else:
+                    for k in range(p):
+                        jx = ixs[k] + dx
+                        jy = iys[k] + dy
+                        if 0 <= jx < w and 0 <= jy < h:
+                            tot += score[jy, jx]
                 if tot > best[top_k - 1, 0]:
                     # insert sorted
                     pos = top_k - 1
