@@ -191,6 +191,35 @@ def _insert_points(
                     score[jy, jx] = math.exp(-dd * inv2s2)
 
 
+@nb.njit(cache=True)
+def _clear_around(
+    nearest: NDArray[np.int32],
+    d2: NDArray[np.float32],
+    score: NDArray[np.float32],
+    points: FloatArray,
+    count: int,
+    x0: float,
+    y0: float,
+    res: float,
+    radius: float,
+) -> None:
+    """Undo :func:`_insert_points` of the first ``count`` ``points`` (same origin, resolution and radius):
+    every cell any of them could write is emptied again."""
+    h, w = nearest.shape
+    rc = math.ceil(radius / res)
+    for k in range(count):
+        ix = math.floor((points[k, 0] - x0) / res)
+        iy = math.floor((points[k, 1] - y0) / res)
+        if ix + rc < 0 or iy + rc < 0 or ix - rc >= w or iy - rc >= h:
+            continue
+        for jy in range(max(0, iy - rc), min(h, iy + rc + 1)):
+            for jx in range(max(0, ix - rc), min(w, ix + rc + 1)):
+                if d2[jy, jx] != np.inf:  # neighbouring points share most of their cells
+                    nearest[jy, jx] = -1
+                    d2[jy, jx] = np.inf
+                    score[jy, jx] = 0.0
+
+
 class PointGrid:
     """Map points on a fixed grid: nearest-point index and correlative score per cell; points can be added.
 
@@ -230,7 +259,22 @@ class PointGrid:
     def reset(self, origin_xy_m: FloatArray) -> None:
         """Empty the grid and move it to a new origin, reusing its memory (cheaper than a new grid)."""
         r0, r1, c0, c1 = (int(v) for v in self._touched)
-        if r1 > r0 and c1 > c0:
+        rc = math.ceil(self.radius_m / self.resolution_m)
+        if self._count * (2 * rc + 1) ** 2 < (r1 - r0) * (c1 - c0):
+            # fewer cells around the points than in their bounding box (long-range scans spread a few
+            # thousand points over most of the grid): empty only the cells the points could write
+            _clear_around(
+                self.nearest,
+                self._d2,
+                self.score,
+                self._points,
+                self._count,
+                float(self.origin_xy_m[0]),
+                float(self.origin_xy_m[1]),
+                self.resolution_m,
+                self.radius_m,
+            )
+        elif r1 > r0 and c1 > c0:
             self.nearest[r0:r1, c0:c1] = -1
             self._d2[r0:r1, c0:c1] = np.inf
             self.score[r0:r1, c0:c1] = 0.0

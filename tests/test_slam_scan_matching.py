@@ -140,6 +140,26 @@ def test_grid_insert_and_reset() -> None:
     assert len(grid) == 0 and np.all(grid.nearest == -1) and np.all(grid.score == 0)
 
 
+@pytest.mark.parametrize("spread_m", [0.5, 40.0])
+def test_reset_empties_every_written_cell(spread_m: float) -> None:
+    """A reset leaves the grid as a new one: dense points (the bounding box is cleared) and points spread far
+    apart, some beyond the grid's edge (only the cells around them are), and a grid reused after it fills
+    exactly as a new one does."""
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-spread_m, spread_m, size=(300, 2))
+    nrm = np.tile([1.0, 0.0], (300, 1))
+    grid = PointGrid.around(np.zeros(2), 30.0, resolution_m=0.05)
+    grid.insert(pts, nrm)
+    assert np.any(grid.score > 0)
+    grid.reset(np.array([1.0, -2.0]))
+    assert np.all(grid.nearest == -1) and np.all(grid.score == 0) and np.all(np.isinf(grid._d2))
+    grid.insert(pts[:100], nrm[:100])
+    fresh = PointGrid(grid.origin_xy_m, grid.shape, 0.05)
+    fresh.insert(pts[:100], nrm[:100])
+    np.testing.assert_array_equal(grid.nearest, fresh.nearest)
+    np.testing.assert_array_equal(grid.score, fresh.score)
+
+
 def test_normals_face_the_sensor() -> None:
     x = np.linspace(-1, 1, 21)
     above = scan_normals(np.stack([x, np.full_like(x, 2.0)], axis=1))
