@@ -92,7 +92,7 @@ def evaluate_slam(
     if ref is not None:
         out["reference"]["scan_matching"] = scan_matching
     if relations is not None:
-        out["relations"] = score_relations(rec, result, relations, rel_match)
+        out["relations"] = score_relations(result, relations, rel_match)
     out["table"] = _table(out)
     return out
 
@@ -271,7 +271,7 @@ def match_relations(rec: Recording, relations: Any, relations_path: str | Path) 
     return best
 
 
-def score_relations(rec: Recording, result: SlamResult, relations: Any, matched: tuple) -> dict[str, Any]:
+def score_relations(result: SlamResult, relations: Any, matched: tuple) -> dict[str, Any]:
     """The relations metric (SPEC keys) of the trajectory after loop closure, plus ``before`` and counts.
 
     The relations are of the robot's base poses (module docstring), so the base poses are scored as they are.

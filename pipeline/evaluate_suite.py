@@ -507,7 +507,7 @@ def _evaluate(
     if ref is not None:
         out["reference"]["scan_matching"] = scan_matching  # as evaluate slam
     if relations is not None:
-        out["relations"] = score_relations(rec, result, relations, rel_match)
+        out["relations"] = score_relations(result, relations, rel_match)
     slam = out["slam"]
     timings["slam_s"] = slam["wall_s"]
     if synthetic:

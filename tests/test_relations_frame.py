@@ -41,11 +41,11 @@ def test_relations_of_the_base_score_zero_with_a_mounting_off_the_base() -> None
     a = np.arange(0, len(base) - 5, 3)
     b = a + 5
     of_base = _relations(base, stamps, a, b)
-    out = score_relations(rec, result, of_base, match_relations(rec, of_base, "base.relations"))
+    out = score_relations(result, of_base, match_relations(rec, of_base, "base.relations"))
     assert out["count"] == len(a) and out["trans_mean_m"] < 1e-9 and out["rot_mean_deg"] < 1e-9
     # the same motion described by the laser's poses differs by the mounting turned through each relation
     of_laser = _relations(se2.compose(base, mount), stamps, a, b)
-    out = score_relations(rec, result, of_laser, match_relations(rec, of_laser, "laser.relations"))
+    out = score_relations(result, of_laser, match_relations(rec, of_laser, "laser.relations"))
     assert out["trans_mean_m"] > 0.1 and out["rot_mean_deg"] < 1e-9
 
 
