@@ -151,6 +151,16 @@ def scan_normals(
 # The grid
 
 
+@nb.njit(cache=True, inline="always")
+def _footprint(px, py, x0, y0, res, radius, h, w):
+    """The cells ``[r0, r1) x [c0, c1)`` of an (h, w) grid within ``ceil(radius / res)`` cells of the cell
+    holding (px, py): those a point inserted there may write (empty when it lies that far off the grid)."""
+    rc = math.ceil(radius / res)
+    ix = math.floor((px - x0) / res)
+    iy = math.floor((py - y0) / res)
+    return max(0, iy - rc), min(h, iy + rc + 1), max(0, ix - rc), min(w, ix + rc + 1)
+
+
 @nb.njit(cache=True)
 def _insert_points(
     nearest: NDArray[np.int32],
@@ -166,23 +176,21 @@ def _insert_points(
     touched: NDArray[np.int64],
 ) -> None:
     h, w = nearest.shape
-    rc = math.ceil(radius / res)
     r2 = radius * radius
     inv2s2 = 1.0 / (2.0 * sigma * sigma)
     for k in range(points.shape[0]):
         px = points[k, 0]
         py = points[k, 1]
-        ix = math.floor((px - x0) / res)
-        iy = math.floor((py - y0) / res)
-        if ix + rc < 0 or iy + rc < 0 or ix - rc >= w or iy - rc >= h:
+        r0, r1, c0, c1 = _footprint(px, py, x0, y0, res, radius, h, w)
+        if r1 <= r0 or c1 <= c0:
             continue
-        touched[0] = min(touched[0], max(0, iy - rc))
-        touched[1] = max(touched[1], min(h, iy + rc + 1))
-        touched[2] = min(touched[2], max(0, ix - rc))
-        touched[3] = max(touched[3], min(w, ix + rc + 1))
-        for jy in range(max(0, iy - rc), min(h, iy + rc + 1)):
+        touched[0] = min(touched[0], r0)
+        touched[1] = max(touched[1], r1)
+        touched[2] = min(touched[2], c0)
+        touched[3] = max(touched[3], c1)
+        for jy in range(r0, r1):
             cy = y0 + (jy + 0.5) * res - py
-            for jx in range(max(0, ix - rc), min(w, ix + rc + 1)):
+            for jx in range(c0, c1):
                 cx = x0 + (jx + 0.5) * res - px
                 dd = cx * cx + cy * cy
                 if dd <= r2 and dd < d2[jy, jx]:
@@ -204,16 +212,12 @@ def _clear_around(
     radius: float,
 ) -> None:
     """Undo :func:`_insert_points` of the first ``count`` ``points`` (same origin, resolution and radius):
-    every cell any of them could write is emptied again."""
+    every cell of their footprints (:func:`_footprint`) is emptied again."""
     h, w = nearest.shape
-    rc = math.ceil(radius / res)
     for k in range(count):
-        ix = math.floor((points[k, 0] - x0) / res)
-        iy = math.floor((points[k, 1] - y0) / res)
-        if ix + rc < 0 or iy + rc < 0 or ix - rc >= w or iy - rc >= h:
-            continue
-        for jy in range(max(0, iy - rc), min(h, iy + rc + 1)):
-            for jx in range(max(0, ix - rc), min(w, ix + rc + 1)):
+        r0, r1, c0, c1 = _footprint(points[k, 0], points[k, 1], x0, y0, res, radius, h, w)
+        for jy in range(r0, r1):
+            for jx in range(c0, c1):
                 if d2[jy, jx] != np.inf:  # neighbouring points share most of their cells
                     nearest[jy, jx] = -1
                     d2[jy, jx] = np.inf
