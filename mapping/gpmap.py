@@ -25,11 +25,15 @@ from mapping.exports import MapLayers
 from mapping.gppol import GaussianInputs
 from mapping.neighbours import BeamIndex
 from mapping.reach import (
+    REACH_MIN_PEAK,
     ReachMask,
     kernel_reach_m,
     largest_eigenvalue,
+    quadratic_range,
     reach_mask,
+    se_girard_peak,
     se_girard_reach_m,
+    segment_pieces,
     spread_factor,
 )
 from mapping.train import GPParams
@@ -170,18 +174,23 @@ class GPOccupancyMap:
             reach = np.full(starts.shape[0], r0)
         else:  # Gaussian inputs at their UT means, each reaching further by its spread
             occ, seg = self._inputs.occ_moments, self._inputs.seg_moments
-            free_len = seg[:, 13]
-            # the largest eigenvalue of Sigma(d) = C0 + d C1 + d^2 C2 on [0, L] is at most its trace's
-            # largest value there (a quadratic in d: at an end or at its vertex)
-            t0, t1, t2 = (seg[:, k] + seg[:, k + 2] for k in (4, 7, 10))
-            ends_tr = np.maximum(t0, t0 + free_len * (t1 + free_len * t2))
-            vertex = np.clip(np.divide(-t1, 2.0 * t2, out=np.zeros_like(t1), where=t2 != 0), 0, free_len)
-            seg_var = np.maximum(ends_tr, t0 + vertex * (t1 + vertex * t2))
-            starts = np.concatenate([occ[:, :2], seg[:, :2]])
-            ends = np.concatenate([occ[:, :2], seg[:, :2] + free_len[:, None] * seg[:, 2:4]])
-            lam = np.concatenate([largest_eigenvalue(occ[:, 2:5]), np.maximum(seg_var, 0.0)])
+            # a free segment's input covariance Sigma(d) = C0 + d C1 + d^2 C2 (d along the beam), bounded
+            # piece by piece: its largest eigenvalue lies between half its trace and its trace, both
+            # quadratics in d (extremes at a piece's ends or the vertex)
+            which, d0, d1 = segment_pieces(seg[:, 13])
+            t0, t1, t2 = (seg[which, k] + seg[which, k + 2] for k in (4, 7, 10))
+            tr_lo, tr_hi = quadratic_range(t0, t1, t2, d0, d1)
+            direction = seg[which, 2:4]
+            starts = np.concatenate([occ[:, :2], seg[which, :2] + d0[:, None] * direction])
+            ends = np.concatenate([occ[:, :2], seg[which, :2] + d1[:, None] * direction])
+            occ_lam = largest_eigenvalue(occ[:, 2:5])
+            lam = np.concatenate([occ_lam, np.maximum(tr_hi, 0.0)])
             if self._inputs.mode == INPUTS_GIRARD:
-                reach = se_girard_reach_m(self.params.kernel.as_dict()["length_scale"], lam)
+                ell = self.params.kernel.as_dict()["length_scale"]
+                reach = se_girard_reach_m(ell, lam)
+                # inputs too spread to inform a place on their own (REACH_MIN_PEAK) reach nowhere
+                peak = se_girard_peak(ell, np.concatenate([occ_lam, 0.5 * tr_lo]))
+                reach[peak < REACH_MIN_PEAK] = 0.0
             else:
                 c = spread_factor(float(np.max(np.linalg.norm(self._inputs.nodes, axis=1))))
                 reach = r0 + c * np.sqrt(lam)

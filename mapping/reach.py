@@ -14,6 +14,11 @@ covariance's largest eigenvalue is at most ``lambda`` (GPPOL, eq. 17-19). For th
 the expected kernel is at most ``l / sqrt(l^2 + lambda) exp(-d^2 / (2 (l^2 + lambda)))`` of ``k(0)``, which
 is what the map uses (:func:`se_girard_reach_m`: an input spread over metres reaches little); a quadrature
 rule puts its nodes at most ``|z|max sqrt(lambda)`` from the mean: ``c`` is that (:func:`spread_factor`).
+A free segment is bounded piece by piece (:data:`REACH_PIECE_M`): a long beam's covariance grows along it.
+Under the closed form, an input whose expected kernel nowhere exceeds :data:`REACH_MIN_PEAK` of ``k(0)``
+(metres-uncertain scans, e.g. where passes disagree) marks nothing: where sharper inputs are near, they are
+a place's nearest inputs and it is solved as before; where only such inputs are near, the place reads the
+prior, which they could move only slightly, never to a known variance (``tests/test_mapping_reach.py``).
 The neural-network kernel (eq. 7) does not decay: its maps keep every cell (no mask).
 """
 
@@ -39,6 +44,12 @@ REACH_TOLERANCE = 1e-4
 REACH_CLASS_RATIO = 1.2
 #: ... and at most this many classes (the ratio grows where the reaches span more).
 REACH_CLASSES = 16
+#: A Gaussian input whose expected SE kernel nowhere exceeds this share of ``k(0)`` (a position spread above
+#: about 50 length scales) makes no place near by itself (:func:`se_girard_peak`).
+REACH_MIN_PEAK = 0.02
+#: Free segments are bounded piece by piece, at most this long, so that the uncertain far end of a long beam
+#: does not widen the reach of its precise near end.
+REACH_PIECE_M = 8.0
 
 
 def kernel_reach_m(kernel: Kernel, tolerance: float = REACH_TOLERANCE) -> float | None:
@@ -80,6 +91,39 @@ def se_girard_reach_m(
     u = float(length_scale_m) ** 2 + np.maximum(np.asarray(largest_var_m2, dtype=np.float64), 0.0)
     log_ratio = np.log(float(length_scale_m) / (np.sqrt(u) * tolerance))
     return np.sqrt(2.0 * u * np.maximum(log_ratio, 0.0))
+
+
+def se_girard_peak(length_scale_m: float, var_m2: FloatArray) -> FloatArray:
+    """(...,) upper bounds of the expected SE kernel (eq. 19) over ``k(0)`` of Gaussian inputs whose
+    covariance's largest eigenvalue is at least ``var_m2``: ``l^2 / sqrt(det(l^2 I + Sigma)) <= l / sqrt(l^2 +
+    lambda)`` at any distance."""
+    ell = float(length_scale_m)
+    return ell / np.sqrt(ell**2 + np.maximum(np.asarray(var_m2, dtype=np.float64), 0.0))
+
+
+def segment_pieces(
+    lengths_m: FloatArray, piece_m: float = REACH_PIECE_M
+) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+    """The (S,) segments of ``lengths_m`` cut into pieces of at most ``piece_m`` (a segment of length 0 is one
+    piece): for each piece its segment, and where it starts and ends along it (m), each (P,)."""
+    lengths = np.asarray(lengths_m, dtype=np.float64)
+    counts = np.maximum(1, np.ceil(lengths / piece_m)).astype(np.int64)
+    which = np.repeat(np.arange(lengths.size), counts)
+    k = np.arange(which.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    step = lengths[which] / counts[which]
+    return which, k * step, (k + 1) * step
+
+
+def quadratic_range(
+    c0: FloatArray, c1: FloatArray, c2: FloatArray, a: FloatArray, b: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """The smallest and largest values of ``c0 + d c1 + d^2 c2`` over ``d`` in ``[a, b]`` (elementwise): at an
+    end or at the vertex."""
+    ends_a = c0 + a * (c1 + a * c2)
+    ends_b = c0 + b * (c1 + b * c2)
+    v = np.clip(np.divide(-c1, 2.0 * c2, out=np.zeros_like(c1), where=c2 != 0), a, b)
+    at_v = c0 + v * (c1 + v * c2)
+    return np.minimum(np.minimum(ends_a, ends_b), at_v), np.maximum(np.maximum(ends_a, ends_b), at_v)
 
 
 def largest_eigenvalue(packed_cov: FloatArray) -> FloatArray:

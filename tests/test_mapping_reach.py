@@ -15,11 +15,15 @@ from mapping.gppol import GaussianInputs, SensorNoise, input_moments
 from mapping.kernels import make_kernel
 from mapping.noisy_kernels import GAUSS_HERMITE, GIRARD, InputExpectation
 from mapping.reach import (
+    REACH_MIN_PEAK,
     REACH_TOLERANCE,
     kernel_reach_m,
     largest_eigenvalue,
+    quadratic_range,
     reach_mask,
+    se_girard_peak,
     se_girard_reach_m,
+    segment_pieces,
     spread_factor,
 )
 from mapping.train import GPParams
@@ -62,6 +66,48 @@ def test_se_girard_reach_bounds_the_expected_kernel() -> None:
         # tight: a covariance flat across the offset attains the bound
         assert girard_se(se, np.array([0.98 * r, 0.0]), np.diag([lam, 0.0])) > REACH_TOLERANCE
     assert se_girard_reach_m(ell, (ell / REACH_TOLERANCE) ** 2) == 0.0
+
+
+def test_se_girard_peak_bounds_the_expected_kernel_everywhere() -> None:
+    """The peak bound holds at every offset for covariances whose largest eigenvalue is at least the one
+    given, and it is attained at the mean by an input spread along one axis only."""
+    from mapping.noisy_kernels import girard_se
+
+    ell = 0.3
+    se = make_kernel("se", {"sigma_f": 1.0, "length_scale": ell})
+    rng = np.random.default_rng(4)
+    for lam in (0.0, 0.05, 2.0, 400.0):
+        bound = float(se_girard_peak(ell, lam))
+        for _ in range(20):
+            rot = np.linalg.qr(rng.normal(size=(2, 2)))[0]
+            cov = rot @ np.diag([lam, rng.uniform(0, 1) * lam]) @ rot.T
+            d = rng.normal(0, 1 + math.sqrt(lam), 2) * rng.choice([0.0, 1.0])
+            assert girard_se(se, d, cov) <= bound * (1 + 1e-12)
+        assert girard_se(se, np.zeros(2), np.diag([lam, 0.0])) == pytest.approx(bound, rel=1e-12)
+    assert float(se_girard_peak(ell, ell**2 * (REACH_MIN_PEAK**-2 - 1))) == pytest.approx(REACH_MIN_PEAK)
+
+
+def test_segment_pieces_cover_each_segment_and_quadratic_range_brackets_it() -> None:
+    """Pieces tile each segment end to end, none longer than asked; the range of a quadratic over a piece
+    equals its extremes found by dense sampling (convex, concave and linear)."""
+    lengths = np.array([0.0, 3.0, 8.0, 8.01, 61.9])
+    which, a, b = segment_pieces(lengths, 8.0)
+    assert np.array_equal(np.bincount(which, minlength=5), [1, 1, 1, 2, 8])
+    for s in range(5):
+        mine = which == s
+        assert a[mine][0] == 0.0 and b[mine][-1] == pytest.approx(lengths[s])
+        assert np.allclose(a[mine][1:], b[mine][:-1]) and np.all(b[mine] - a[mine] <= 8.0 + 1e-12)
+    rng = np.random.default_rng(5)
+    c0, c1, c2 = rng.normal(size=(3, 200))
+    c2[:50] = 0.0
+    lo_end = rng.uniform(-3, 3, 200)
+    hi_end = lo_end + rng.uniform(0, 4, 200)
+    lo, hi = quadratic_range(c0, c1, c2, lo_end, hi_end)
+    d = lo_end[:, None] + np.linspace(0, 1, 4001)[None] * (hi_end - lo_end)[:, None]
+    vals = c0[:, None] + d * (c1[:, None] + d * c2[:, None])
+    assert np.all(lo <= vals.min(axis=1) + 1e-12) and np.all(hi >= vals.max(axis=1) - 1e-12)
+    np.testing.assert_allclose(lo, vals.min(axis=1), atol=1e-5)
+    np.testing.assert_allclose(hi, vals.max(axis=1), atol=1e-5)
 
 
 def test_largest_eigenvalue_of_packed_covariances() -> None:
@@ -158,6 +204,46 @@ def test_map_with_reach_equals_the_map_solved_everywhere(
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-5)
     assert np.all(a.mean[far] == 0.0) and np.all(a.variance[far] == params.prior_variance)
     assert np.all(a.probability[far] == params.unseen_probability)
+
+
+def test_metres_uncertain_scans_mark_nothing_and_leave_the_map_as_solved_everywhere(
+    intel_beams, monkeypatch
+) -> None:
+    """Every ninth scan metres-uncertain (as where passes disagree): its inputs, spread too wide to inform
+    a place on their own, no longer widen the reach (a smaller share of the grid is solved). Where the map
+    solves, it is the map solved everywhere; the places left to the prior are those where only the
+    uncertain inputs lie near, and solving them moves nothing a planner sees (the variance stays within
+    1e-4 of the prior: unknown)."""
+    beams, cov = intel_beams
+    cov = cov.copy()
+    cov[4::9] = np.diag([20.0**2, 20.0**2, 0.2**2])
+    params = GPParams(make_kernel("se", (0.9, 0.3)), 0.05, 6.0, -0.4)
+    moments = input_moments(beams, cov, [SensorNoise(0.01, 1e-4)])
+    laser = input_moments(beams, None, [SensorNoise(0.01, 1e-4)])
+
+    def gp_map() -> GPOccupancyMap:
+        inputs = GaussianInputs(moments, InputExpectation(GIRARD, 1), local_moments=laser)
+        return GPOccupancyMap(beams, params, 15, 15, inputs=inputs)
+
+    floored, solved = gp_map(), gp_map()
+    solved._reach, solved._reach_done = None, True
+    monkeypatch.setattr("mapping.gpmap.REACH_MIN_PEAK", 0.0)
+    unfloored = gp_map()
+    unfloored.reach()
+    monkeypatch.undo()
+    x0, y0, x1, y1 = floored.bounds_xy_m(margin_m=25.0)
+    gx, gy = np.meshgrid(np.arange(x0, x1, 0.21), np.arange(y0, y1, 0.21))
+    q = np.column_stack([gx.ravel(), gy.ravel()])
+    near, near_unfloored = floored.reach().contains(q), unfloored.reach().contains(q)
+    assert not (near & ~near_unfloored).any()
+    assert near.mean() < 0.8 * near_unfloored.mean()
+    a, b = floored.query(q), solved.query(q)
+    for name in ("mean", "variance", "probability"):  # where solved, solved the same way
+        np.testing.assert_array_equal(getattr(a, name)[near], getattr(b, name)[near])
+    # where only the uncertain scans are near, the prior stands in for a prediction they barely moved
+    assert np.all(a.probability[~near] == params.unseen_probability)
+    assert np.abs(b.probability[~near] - params.unseen_probability).max() < 1e-3
+    assert b.variance[~near].min() > (1 - 1e-4) * params.prior_variance
 
 
 def test_the_nn_kernel_solves_every_query(intel_beams) -> None:
