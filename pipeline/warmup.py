@@ -12,7 +12,8 @@ real code: :func:`pipeline.run.run_pipeline` with the default configuration (bot
 short recording written as a bag, read back and scored against its ground truth, as ``run.py demo`` does.
 The recording is the start of the demo's ``loop`` world driven there and back (:func:`there_and_back`): the
 way back passes the start after more than the loop closure's minimum separation, so that loop closure
-searches too.
+searches too. A few paths only real recordings take (long-range scans, big maps' figures) are run on small
+inputs afterwards (:func:`warm_other_paths`).
 """
 
 from __future__ import annotations
@@ -98,6 +99,28 @@ def write_warmup_bag(bag: Path, n_scans: int = WARMUP_SCANS, seed: int = 0) -> P
     return bag
 
 
+def warm_other_paths() -> None:
+    """Compile (or load) the signatures that real recordings reach and the short simulated run does not,
+    through the same calls: the odometry's exhaustive correlative search (a wheel-seeded window of a few
+    cells), a submap reset that empties only the cells around far-spread points (long-range scans), and a
+    big map's figure (pasted at one pixel per cell, whose pixels are strided views)."""
+    from mapping.exports import MapLayers
+    from mapping.figures import layer_figure, save_figure
+    from slam.odometry import search_window
+    from slam.scan_matching import PointGrid
+
+    grid = PointGrid.around(np.zeros(2), 60.0)
+    points = np.array([[-55.0, 0.0], [55.0, 1.0], [0.0, 55.0]])
+    grid.insert(points, np.tile([0.0, 1.0], (3, 1)))
+    search_window(grid, points, np.array([0.05, 0.0, 0.01]), 0.1, 0.05, 0.004)
+    grid.reset(np.full(2, -60.0))
+    cells = np.zeros((1200, 2000), dtype=np.float32)
+    with tempfile.TemporaryDirectory(prefix="gpom-warmup-") as tmp:
+        save_figure(
+            layer_figure(MapLayers(cells, cells, cells, 0.1, (0.0, 0.0)), "probability"), Path(tmp) / "m.png"
+        )
+
+
 def warm_up(work_dir: Path | None = None, n_scans: int = WARMUP_SCANS) -> dict[str, Any]:
     """Run the full pipeline (default configuration) on the warm-up recording in ``work_dir`` (default: a
     temporary folder, removed afterwards; a given one keeps ``warmup.mcap`` and the run folder ``run``,
@@ -113,7 +136,9 @@ def warm_up(work_dir: Path | None = None, n_scans: int = WARMUP_SCANS) -> dict[s
         for old in (bag, ground_truth_path(bag)):
             old.unlink(missing_ok=True)
         write_warmup_bag(bag, n_scans)
-        return run_pipeline(bag, folder / "run", overwrite=True, progress=Progress())
+        summary = run_pipeline(bag, folder / "run", overwrite=True, progress=Progress())
+    warm_other_paths()
+    return summary
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -38,6 +38,30 @@ for mapper in ("gpfol", "gppol"):
 """
 
 
+# What a real recording reaches and the short simulated run does not (pipeline.warmup.warm_other_paths): a
+# wheel-seeded search window of a few cells, a reset of a submap of far-spread points, and a big map's
+# figure (pasted at one pixel per cell).
+REAL_PATHS = """
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from mapping.exports import MapLayers
+from mapping.figures import layer_figure, save_figure
+from slam.odometry import search_window
+from slam.scan_matching import PointGrid
+
+grid = PointGrid.around(np.zeros(2), 60.0)
+points = np.array([[-50.0, 0.0], [50.0, 1.0], [0.0, 50.0]])
+grid.insert(points, np.tile([0.0, 1.0], (3, 1)))
+search_window(grid, points, np.array([0.1, 0.0, 0.01]), 0.1, 0.05, 0.004)
+grid.reset(np.full(2, -60.0))
+p = np.random.default_rng(0).uniform(0, 1, (1500, 2500)).astype(np.float32)
+save_figure(layer_figure(MapLayers(p, p, p, 0.1, (0.0, 0.0)), "probability"), Path(sys.argv[1]))
+"""
+
+
 def _python(*args: str, timeout: float) -> subprocess.CompletedProcess:
     env = {**os.environ, "NUMBA_DEBUG_CACHE": "1"}
     env.pop("NUMBA_CACHE_DIR", None)  # numba's default: __pycache__ beside each module, as `make env` fills
@@ -67,6 +91,18 @@ def test_a_second_interpreter_loads_the_compiled_map_query() -> None:
     for mapper, (centre, wall) in got.items():
         np.testing.assert_allclose([centre, wall], expected[mapper], rtol=1e-9)
         assert 0 < centre < wall < 1, mapper
+
+
+def test_the_warmup_compiles_what_real_recordings_reach_beyond_the_simulated_run(tmp_path) -> None:
+    """After :func:`pipeline.warmup.warm_other_paths` in one interpreter, the real code paths it stands for
+    load every compiled function from the cache in the next one (none is compiled again)."""
+    warm = _python("-c", "from pipeline.warmup import warm_other_paths; warm_other_paths()", timeout=300)
+    assert warm.returncode == 0, warm.stderr
+    real = _python("-c", REAL_PATHS, str(tmp_path / "map.png"), timeout=300)
+    assert real.returncode == 0, real.stderr
+    loaded, saved = _cache_lines(real.stdout, "data loaded"), _cache_lines(real.stdout, "data saved")
+    for name in ("scan_matching._csm", "scan_matching._clear_around", "figures._over"):
+        assert name in loaded and name not in saved, (name, saved)
 
 
 def _probabilities(output: str) -> dict[str, tuple[float, float]]:
