@@ -18,7 +18,7 @@ A free segment is bounded piece by piece (:data:`REACH_PIECE_M`): a long beam's 
 Under the closed form, an input whose expected kernel nowhere exceeds :data:`REACH_MIN_PEAK` of ``k(0)``
 (metres-uncertain scans, e.g. where passes disagree) marks nothing: where sharper inputs are near, they are
 a place's nearest inputs and it is solved as before; where only such inputs are near, the place reads the
-prior, which they could move only slightly, never to a known variance (``tests/test_mapping_reach.py``).
+prior, which they would have moved only slightly (``tests/test_mapping_reach.py`` measures how little).
 The neural-network kernel (eq. 7) does not decay: its maps keep every cell (no mask).
 """
 
