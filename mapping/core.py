@@ -6,9 +6,10 @@ these ``n <= k_occ + k_free`` training points, in coordinates centred on the que
 Cholesky of ``K + sigma_n^2 I`` (jitter added and the factorisation retried if it fails), and the PLS link
 ``p = Phi((alpha mu + beta) / sqrt(1 + alpha^2 (sigma^2 + sigma_n^2)))`` (SPEC section 5, R&W eq. 6.42).
 
-:func:`predict_batch` runs chunks of queries in parallel (``_predict_chunk``); within a chunk each query goes
-through the neighbour search (:func:`mapping.index.knn_points`, :func:`mapping.index.knn_segments`,
-warm-started from the previous query's neighbours) and gets its training set, centred on the query
+:func:`predict_batch` runs chunks of queries in parallel (``_predict_chunk``); a chunk's neighbours are found
+first (:func:`mapping.blocks.chunk_neighbours`: one range search per block of nearby queries, else
+:func:`mapping.index.knn_points` / :func:`mapping.index.knn_segments` per query), then each query gets its
+training set, centred on the query
 (``_training_inputs``; GPPOL, section 3.6: ``_gaussian_inputs``, the means and 2x2 covariances of the inputs),
 copied into one of LANES lanes, unless no input informs the query (``_informs``: every entry of ``k*`` below
 :data:`NEGLIGIBLE_KERNEL` of ``k(0)``, e.g. far from precise data yet within the reach of a distant,
@@ -27,12 +28,12 @@ The compiled steps that allocate nothing are compiled without numba's reference 
 numba's option for code that needs no runtime): with it every array argument of a call costs an atomic
 increment and decrement, which in the neighbour search, called for every query, took about a quarter of
 its time. Such a function cannot allocate (numba refuses to compile it then), so allocation stays in the
-drivers (``_predict_chunk``, ``_search_scratch``).
+drivers (``_predict_chunk``, :func:`mapping.blocks.chunk_neighbours`).
 
 Compiled code is cached on disk (``cache=True``). Numba's cache does not notice edits to compiled functions
 of OTHER modules that a cached function calls (e.g. :mod:`mapping.index` from :func:`predict_batch`): after
-editing ``mapping/index.py`` or ``mapping/raster.py``, delete ``mapping/__pycache__/*.nb[ic]`` (``make env``
-does so after an edit of any module of ``mapping/``).
+editing ``mapping/index.py``, ``mapping/blocks.py`` or ``mapping/raster.py``, delete
+``mapping/__pycache__/*.nb[ic]`` (``make env`` does so after an edit of any module of ``mapping/``).
 
 Kernel ids and packed parameters (see :meth:`mapping.kernels.Kernel.packed`):
 0 neural network (eq. 7): ``(sf2, 2 sigma_0^2, 2 sigma^2)``; 1 squared exponential: ``(sf2, 1/l^2)``;
@@ -48,7 +49,8 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from mapping.index import flat_points, flat_segments, knn_points, knn_segments, points_of, segments_of
+from mapping.blocks import chunk_neighbours
+from mapping.index import flat_points, flat_segments, points_of, segments_of
 from mapping.vecmath import exp_nonpositive
 
 FloatArray = NDArray[np.float64]
@@ -618,23 +620,6 @@ class InputGaussians(NamedTuple):
         return cls(INPUTS_POINTS, np.zeros((0, 9)), np.zeros((0, 24)), np.zeros((1, 2)), np.ones(1))
 
 
-class _SearchScratch(NamedTuple):
-    """Neighbour-search buffers of one chunk: squared distances, ids and segment parameters of the
-    endpoints (``*o``) and free segments (``*f``) found, the warm-start candidates, per-cell buffers."""
-
-    d2o: FloatArray
-    ido: IntArray
-    to: FloatArray
-    d2f: FloatArray
-    idf: IntArray
-    tf: FloatArray
-    warm_o: IntArray
-    warm_f: IntArray
-    pbuf: FloatArray
-    sbuf: NDArray[np.float32]
-    scand: FloatArray
-
-
 class _LaneScratch(NamedTuple):
     """LANES local problems of one chunk (see the fast path above): inputs XL, covariances SL (and SLo of
     the laser noise alone, scans GL), labels yL, ``mask`` (1 real point, 0 pad), sizes ``counts``; K blocks
@@ -674,31 +659,6 @@ class _SingleScratch(NamedTuple):
     diag: FloatArray
     v: FloatArray
     w: FloatArray
-
-
-@nb.njit(cache=True, error_model="numpy")
-def _search_scratch(points, segments, k_occ, k_free):
-    """Neighbour-search buffers for ``k_occ`` + ``k_free`` neighbours among ``points`` and ``segments``."""
-    return _SearchScratch(
-        np.empty(max(k_occ, 1)),
-        np.empty(max(k_occ, 1), np.int64),
-        np.empty(max(k_occ, 1)),
-        np.empty(max(k_free, 1)),
-        np.empty(max(k_free, 1), np.int64),
-        np.empty(max(k_free, 1)),
-        np.empty(max(k_occ, 1), np.int64),
-        np.empty(max(k_free, 1), np.int64),
-        np.empty(max(points.index.most, 1)),
-        np.empty(max(segments.index.most, 1), np.float32),
-        np.empty((3, max(segments.index.most, 1))),
-    )
-
-
-@nb.njit(cache=True, error_model="numpy", inline="always")
-def _keep_warm(ids, n, warm):
-    """The next query is usually close by: its search starts from these neighbours."""
-    for i in range(n):
-        warm[i] = ids[i]
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
@@ -803,14 +763,20 @@ def _solve_alone(lane, gp, inputs, lanes, one):
 
 @nb.njit(cache=True, error_model="numpy")
 def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean, out_var, out_prob):
-    """Predictions at ``queries[lo:hi]``, LANES queries at a time. The per-query steps stay in this loop,
-    on the scratch arrays as locals: handing the scratch tuples to a helper for every query is slower; the
-    per-block steps are helpers."""
+    """Predictions at ``queries[lo:hi]``: the chunk's neighbours first, then LANES queries at a time. The
+    per-query steps stay in this loop, on the scratch arrays as locals: handing the scratch tuples to a
+    helper for every query is slower; the per-block steps are helpers."""
     k_occ = gp.k_occ
     k_free = gp.k_free
     nmax = k_occ + k_free
     nodes = inputs.weights.shape[0] if inputs.mode == INPUTS_GH_NODES else 1
-    sc = _search_scratch(points, segments, k_occ, k_free)
+    n_chunk = hi - lo
+    ido_c = np.empty((n_chunk, max(k_occ, 1)), np.int64)
+    no_c = np.zeros(n_chunk, np.int64)
+    idf_c = np.empty((n_chunk, max(k_free, 1)), np.int64)
+    tf_c = np.empty((n_chunk, max(k_free, 1)))
+    nf_c = np.zeros(n_chunk, np.int64)
+    chunk_neighbours(queries, lo, hi, points, segments, k_occ, k_free, ido_c, no_c, idf_c, tf_c, nf_c)
     one = _SingleScratch(
         np.empty((nmax, 2)), np.zeros((nmax, 3)), np.zeros((nmax, 3)), np.zeros(nmax), np.empty(nmax),
         np.empty((nmax, nmax)), np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax),
@@ -824,14 +790,11 @@ def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean,
         np.empty((nmax, LANES)), np.empty((2, LANES)), np.empty(LANES, np.bool_),
         np.empty((nmax, nodes, 2, LANES)), np.empty((nmax, nodes, LANES)),
     )  # fmt: skip
-    d2o, ido, to, d2f, idf, tf, warm_o, warm_f, pbuf, sbuf, scand = sc
     X, S, SLo1, G1, y = one.X, one.S, one.SLo, one.G, one.y
     XL, SL, SLo, GL = lanes.XL, lanes.SL, lanes.SLo, lanes.GL
     yL, mask, counts = lanes.yL, lanes.mask, lanes.counts
     pts, seg = points.xy, segments.seg
     mode, occ_mom, seg_mom = inputs.mode, inputs.occ_moments, inputs.seg_moments
-    no = 0
-    nf = 0
     for base in range(lo, hi, LANES):
         nl = min(LANES, hi - base)
         nfill = 0
@@ -841,10 +804,12 @@ def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean,
                 continue
             qx = queries[base + lane, 0]
             qy = queries[base + lane, 1]
-            no = knn_points(qx, qy, points, k_occ, d2o, ido, to, warm_o, no, pbuf)
-            nf = knn_segments(qx, qy, segments, k_free, d2f, idf, tf, warm_f, nf, sbuf, scand)
-            _keep_warm(ido, no, warm_o)
-            _keep_warm(idf, nf, warm_f)
+            j = base + lane - lo
+            no = no_c[j]
+            nf = nf_c[j]
+            ido = ido_c[j]
+            idf = idf_c[j]
+            tf = tf_c[j]
             # the training set, centred on the query, into this lane
             if mode == INPUTS_POINTS:
                 n = _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y)
@@ -953,23 +918,19 @@ def _prior_var(kid, kp):
 @nb.njit(cache=True, error_model="numpy")
 def _gather_chunk(queries, lo, hi, points, segments, k_occ, k_free, out_occ, out_free, out_t):
     """Neighbours of ``queries[lo:hi]`` (see :func:`gather_batch`)."""
-    d2o, ido, to, d2f, idf, tf, warm_o, warm_f, pbuf, sbuf, scand = _search_scratch(
-        points, segments, k_occ, k_free
-    )
-    no = 0
-    nf = 0
-    for q in range(lo, hi):
-        qx = queries[q, 0]
-        qy = queries[q, 1]
-        no = knn_points(qx, qy, points, k_occ, d2o, ido, to, warm_o, no, pbuf)
-        nf = knn_segments(qx, qy, segments, k_free, d2f, idf, tf, warm_f, nf, sbuf, scand)
-        _keep_warm(ido, no, warm_o)
-        _keep_warm(idf, nf, warm_f)
+    n = hi - lo
+    no = np.zeros(n, np.int64)
+    nf = np.zeros(n, np.int64)
+    ido = np.empty((n, max(k_occ, 1)), np.int64)
+    idf = np.empty((n, max(k_free, 1)), np.int64)
+    tf = np.empty((n, max(k_free, 1)))
+    chunk_neighbours(queries, lo, hi, points, segments, k_occ, k_free, ido, no, idf, tf, nf)
+    for j in range(n):
         for i in range(k_occ):
-            out_occ[q, i] = ido[i] if i < no else -1
+            out_occ[lo + j, i] = ido[j, i] if i < no[j] else -1
         for i in range(k_free):
-            out_free[q, i] = idf[i] if i < nf else -1
-            out_t[q, i] = tf[i] if i < nf else 0.0
+            out_free[lo + j, i] = idf[j, i] if i < nf[j] else -1
+            out_t[lo + j, i] = tf[j, i] if i < nf[j] else 0.0
 
 
 @nb.njit(cache=True, error_model="numpy", parallel=True)
@@ -977,8 +938,8 @@ def gather_batch(queries, points, segments, k_occ, k_free, out_occ, out_free, ou
     """Neighbour ids of (Q, 2) queries among ``points`` and ``segments`` (as in :func:`predict_batch`):
     ``out_occ`` (Q, k_occ) endpoint ids, ``out_free`` (Q, k_free) segment ids and ``out_t`` (Q, k_free)
     positions of the free points along them; -1 pads missing neighbours. The same search as
-    :func:`predict_batch` (chunks of 256 in parallel, each search warm-started from the previous query's
-    neighbours), so that timing it isolates the neighbour search."""
+    :func:`predict_batch` (chunks of 256 in parallel, :func:`mapping.blocks.chunk_neighbours`), so that
+    timing it isolates the neighbour search."""
     nq = queries.shape[0]
     chunk = 256
     nchunks = (nq + chunk - 1) // chunk
