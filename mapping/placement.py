@@ -49,10 +49,10 @@ def _keep_smaller(out, ix, iy, v):
         out[iy, ix] = v
 
 
-@nb.njit(cache=True, error_model="numpy")
+@nb.njit(cache=True, error_model="numpy", nogil=True)
 def _smallest_variances(origins, free_ends, ends, is_hit, ranges, c0, c1, c2, grid, out):
     """``out`` (ny, nx) <- per cell the smallest largest-eigenvalue over the beams touching it (cells no
-    beam touches keep their value)."""
+    beam touches keep their value). Releases the GIL: a run's maps get theirs in parallel threads."""
     cells = np.empty((grid.nx + grid.ny, 2), np.int64)
     for i in range(origins.shape[0]):
         ox = origins[i, 0]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -240,10 +241,15 @@ def run_pipeline(
         with timer("evaluate"):
             metrics = evaluate_run(input_path, rec, slam, maps, layers, config.slam.consistency.revisit_gap_m)
         with timer("export"), progress.stage("export", total=1) as bar:
-            layers = {
-                name: with_placement(m, maps[name].beams, mapper_covariances(slam, name, "world"))
-                for name, m in layers.items()
-            }
+            # each map's placement layer in a thread of its own (its raster walk releases the GIL)
+            with ThreadPoolExecutor(max_workers=2, thread_name_prefix="placement") as pool:
+                placed = {
+                    name: pool.submit(
+                        with_placement, m, maps[name].beams, mapper_covariances(slam, name, "world")
+                    )
+                    for name, m in layers.items()
+                }
+                layers = {name: future.result() for name, future in placed.items()}
             write_maps(
                 stage / "maps",
                 layers,
