@@ -459,8 +459,8 @@ def plan_exploration(
     # the first of the maxima is fresh picks exactly what recomputing every candidate would, ties included.
     bound = np.zeros(candidates.shape[0])
     fresh = np.zeros(candidates.shape[0], dtype=bool)
+    cell_gain = variance_reduction_per_cell(current, noise)  # kept up to date where views see
     for k in range(min(s.n_views, candidates.shape[0])):
-        cell_gain = variance_reduction_per_cell(current, noise)
         if k == 0:
             first = _gains(candidates, layers, knowledge.occupied, cell_gain, s.laser)
             bound = first.copy()
@@ -482,8 +482,10 @@ def plan_exploration(
         chosen.append(best)
         view_gains.append(float(bound[best]))
         bound[best] = -np.inf  # chosen: never again
-        seen = visible_cells(candidates[best], layers, knowledge.occupied, s.laser)
-        current[seen] = current[seen] * noise / (current[seen] + noise)
+        seen = np.flatnonzero(visible_cells(candidates[best], layers, knowledge.occupied, s.laser))
+        flat = current.reshape(-1)  # a view: current is contiguous
+        flat[seen] = flat[seen] * noise / (flat[seen] + noise)
+        cell_gain.reshape(-1)[seen] = variance_reduction_per_cell(flat[seen], noise)
     return ExplorationPlan(
         knowledge=knowledge,
         frontier=frontier,
