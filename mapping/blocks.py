@@ -2,17 +2,20 @@
 
 A map's queries come in compact groups (the cells of a tile). For a block of queries within ``h`` of a
 centre ``c`` whose k-th nearest item lies at ``d_c``, every query ``q`` has its k-th nearest within
-``d_c + |q - c|`` (the centre's k nearest are that close to it), so each of its k nearest lies within
+``B_q <= d_c + |q - c|`` (the centre's k nearest are that close to it), so each of its k nearest lies within
 ``R = d_c + 2 h`` of the centre (triangle inequality; a point-to-segment distance obeys it too). The block
-lists the items within ``R`` once, sorted by their distance to the centre; each query then bounds its k-th
-distance by the centre's k nearest (``B_q``) and only evaluates the items within ``B_q + |q - c|`` of the
-centre, a prefix of the list. The result is exact: the same k nearest, in the same order, as the per-query
-search of :mod:`mapping.index` (equal distances, which have measure zero, may come in another order).
+lists the items within ``R`` once (a segment crossing several index cells once); each query measures them
+all and offers those within ``B_q``, measured on the centre's k nearest, to its top k. The result is exact:
+the k nearest the per-query search of :mod:`mapping.index` finds, nearest first; where several items lie at
+exactly the same distance (the beams of one fan at their common start) the two may keep different ones.
 
 Far from the data (the k-th neighbour metres away) a per-query search scans every index cell within its
-k-th distance, for every query; here that scan is done once per block, and the prefix of a query holds the
-k nearest plus the thin shell between ``d_c`` and its bound. Blocks smaller than :data:`MIN_BLOCK` queries,
-and blocks whose range search would list more than :data:`MAX_CANDIDATES` items, use the per-query search.
+k-th distance, for every query; here that scan is done once per block, and a query measures the k nearest
+plus the shell between ``d_c`` and ``R``. Where the data are dense and the index cells small, that shell
+holds far more items than a query's own k, and the per-query search, bounded within dense cells, is
+cheaper: blocks whose range search would screen more than :data:`MAX_ENTRY_RATIO` times the index entries
+of one query's search, blocks smaller than :data:`MIN_BLOCK` queries and blocks whose range search would
+list more than :data:`MAX_CANDIDATES` items use the per-query search.
 
 :func:`chunk_neighbours` is the driver (it allocates); the per-block and per-query steps allocate nothing
 and are compiled without reference counting (see :mod:`mapping.core`).
@@ -44,6 +47,11 @@ BLOCK_M = 0.6
 MIN_BLOCK = 4
 #: A block whose range search lists more items than this (queries far from all data) searches per query.
 MAX_CANDIDATES = 65536
+#: A block is searched as one only where its range search screens at most this many times the index entries
+#: one query's search screens: index cells much larger than the block (a big building's sparse beams), or
+#: the k-th nearest far compared with the block. Where the data are dense and the index cells small, the
+#: shell between d_c and R lists far more items than a query's own k, and each query's search is cheaper.
+MAX_ENTRY_RATIO = 4.0
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -145,6 +153,29 @@ def _unique(raw_d2, raw_id, n, table_id, table_gen, gen, out_dc, out_id):
         out_id[m] = i
         m += 1
     return m
+
+
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
+def _entries_within(index, cx, cy, r):
+    """How many entries the index cells of the square of half-side ``r`` around (cx, cy) list: what a
+    search out to ``r`` screens (one sum per column of cells)."""
+    grid = index.grid
+    gx = (cx - grid.x0) / grid.cell
+    gy = (cy - grid.y0) / grid.cell
+    lo_x, hi_x, lo_y, hi_y = _square(gx, gy, r / grid.cell, grid.nx, grid.ny)
+    total = 0
+    if lo_y > hi_y:
+        return total
+    for ix in range(lo_x, hi_x + 1):
+        total += index.cell_start[ix * grid.ny + hi_y + 1] - index.cell_start[ix * grid.ny + lo_y]
+    return total
+
+
+@nb.njit(cache=True, error_model="numpy", _nrt=False)
+def _worth_a_block(index, cx, cy, d_c, h, entry_ratio):
+    """Whether a block (centre (cx, cy), radius h, the centre's k-th nearest at d_c) is searched as one:
+    when its range search screens at most ``entry_ratio`` times the entries one query's search does."""
+    return _entries_within(index, cx, cy, d_c + 2.0 * h) <= entry_ratio * _entries_within(index, cx, cy, d_c)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -341,14 +372,15 @@ def _centre(queries, lo, members):
 @nb.njit(cache=True, error_model="numpy")
 def chunk_neighbours(
     queries, lo, hi, points, segments, k_occ, k_free, ido, no, idf, tf, nf, block_m=BLOCK_M,
-    max_candidates=MAX_CANDIDATES,
+    max_candidates=MAX_CANDIDATES, entry_ratio=MAX_ENTRY_RATIO,
 ):  # fmt: skip
     """The ``k_occ`` nearest endpoints and ``k_free`` nearest free segments of each of ``queries[lo:hi]``
     (exact, as :func:`mapping.index.knn_points` / :func:`mapping.index.knn_segments` find them): query
     ``lo + j`` gets ``no[j]`` endpoint ids in ``ido[j]`` and ``nf[j]`` segment ids in ``idf[j]`` with the
     parameters of their closest points in ``tf[j]``, nearest first. Queries are searched in blocks of
     ``block_m`` (module docstring), a block of fewer than :data:`MIN_BLOCK` queries or whose range search
-    lists more than ``max_candidates`` items query by query."""
+    lists more than ``max_candidates`` items or would screen more than ``entry_ratio`` times the index
+    entries of one query's search query by query."""
     n = hi - lo
     if n == 0:
         return
@@ -384,7 +416,9 @@ def chunk_neighbours(
             if k_occ > 0:
                 nco = knn_points(cx, cy, points, k_occ, d2, ids, tt, cen_o, nco, pbuf)
                 cen_o[:nco] = ids[:nco]
-                if nco == k_occ:
+                if nco == k_occ and _worth_a_block(
+                    points.index, cx, cy, math.sqrt(d2[k_occ - 1]), h, entry_ratio
+                ):
                     done_o, sc = _block_points(
                         queries, lo, members, cx, cy, h, points, k_occ, cen_o, sc, max_candidates, ido, no,
                         d2, ids, tt,
@@ -392,7 +426,9 @@ def chunk_neighbours(
             if k_free > 0:
                 ncf = knn_segments(cx, cy, segments, k_free, d2, ids, tt, cen_f, ncf, sbuf, scand)
                 cen_f[:ncf] = ids[:ncf]
-                if ncf == k_free:
+                if ncf == k_free and _worth_a_block(
+                    segments.index, cx, cy, math.sqrt(d2[k_free - 1]), h, entry_ratio
+                ):
                     gen += 1
                     done_f, sc = _block_segments(
                         queries, lo, members, cx, cy, h, segments, k_free, cen_f, sc, gen, max_candidates,

@@ -75,11 +75,14 @@ def test_blocks_find_the_exact_neighbours_on_real_data(intel_index) -> None:
     rng = np.random.default_rng(0)
     starts = rng.choice(order.size // 256, 16, replace=False) * 256
     queries = np.ascontiguousarray(np.concatenate([pts[order[s : s + 256]] for s in starts]))
-    d_occ, d_free, idf = search(index, queries, K)
     b_occ, b_free = brute(beams, queries, K)
-    np.testing.assert_allclose(d_occ, b_occ, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(d_free, b_free, rtol=0, atol=1e-12)
-    assert all(len(set(row)) == K for row in idf.tolist())
+    # by default blocks in dense data search query by query; an infinite entry ratio searches every block
+    # as one
+    for options in ({}, {"entry_ratio": np.inf}):
+        d_occ, d_free, idf = search(index, queries, K, **options)
+        np.testing.assert_allclose(d_occ, b_occ, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(d_free, b_free, rtol=0, atol=1e-12)
+        assert all(len(set(row)) == K for row in idf.tolist())
     # far from the data as well as inside: k-th free segments from centimetres to metres away
     assert b_free[:, -1].min() < 0.05 and b_free[:, -1].max() > 3.0
     a_occ, a_free, _ = search(index, queries, K, block_m=1e-9)  # every query alone
@@ -95,7 +98,11 @@ def test_blocks_over_scattered_points_and_capped_candidates(intel_index) -> None
     queries = rng.uniform(-20.0, 20.0, (600, 2))
     queries = np.ascontiguousarray(queries[np.lexsort(np.floor(queries.T / 2.0))])  # some locality
     b_occ, b_free = brute(beams, queries, K)
-    for options in ({"block_m": 2.0}, {"block_m": BLOCK_M}, {"block_m": 2.0, "max_candidates": 3 * K}):
+    for options in (
+        {"block_m": 2.0, "entry_ratio": np.inf},
+        {"block_m": BLOCK_M},
+        {"block_m": 2.0, "max_candidates": 3 * K, "entry_ratio": np.inf},
+    ):
         d_occ, d_free, _ = search(index, queries, K, **options)
         np.testing.assert_allclose(d_occ, b_occ, rtol=0, atol=1e-12)
         np.testing.assert_allclose(d_free, b_free, rtol=0, atol=1e-12)
