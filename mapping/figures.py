@@ -12,7 +12,10 @@ inspected before it is saved. The documentation figures (``plot_roc``, ``plot_st
 from __future__ import annotations
 
 import textwrap
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from concurrent.futures import Executor, Future, wait
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -183,9 +186,36 @@ def _finish(fig, path: Path, dpi: int) -> Path:
     return path
 
 
+#: Where :func:`save_figure` hands its PNG encoding (an executor and the futures it has handed over), within
+#: :func:`png_encoding_in`.
+_PNG_ENCODER: ContextVar[tuple[Executor, list[Future]] | None] = ContextVar("png_encoder", default=None)
+
+
+@contextmanager
+def png_encoding_in(pool: Executor) -> Iterator[None]:
+    """Within the block, :func:`save_figure` encodes and writes its pasted PNGs in ``pool`` (the encoder
+    releases the GIL, so the next figure is drawn meanwhile); the block ends when they are written, and
+    re-raises the first error of one."""
+    pending: list[Future] = []
+    token = _PNG_ENCODER.set((pool, pending))
+    try:
+        yield
+    except BaseException:
+        wait(pending)  # the block's own error is the one to see
+        raise
+    finally:
+        _PNG_ENCODER.reset(token)
+    for future in pending:
+        future.result()
+
+
+def _write_png(rgb: NDArray[np.uint8], path: Path) -> None:
+    Image.fromarray(rgb).save(path, format="png", compress_level=PNG_COMPRESS_LEVEL)
+
+
 def save_figure(fig: Figure, path: Path) -> Path:
     """Write a run-folder figure (built by a ``*_figure`` function) as a PNG at its own size; returns the
-    path.
+    path (within :func:`png_encoding_in`, the file is written when that block ends).
 
     The maps are pasted rather than drawn: matplotlib would resample each (H, W) map image to the pixels
     it already covers one to one, through masked float copies of the whole map, which is most of the
@@ -196,10 +226,14 @@ def save_figure(fig: Figure, path: Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     rgb = _paste_maps(fig)
+    encoder = _PNG_ENCODER.get()
     if rgb is None:
         fig.savefig(path, dpi=fig.dpi, metadata={"Software": None})
+    elif encoder is None:
+        _write_png(rgb, path)
     else:
-        Image.fromarray(rgb).save(path, format="png", compress_level=PNG_COMPRESS_LEVEL)
+        pool, pending = encoder
+        pending.append(pool.submit(_write_png, rgb, path))
     return path
 
 

@@ -19,7 +19,13 @@ from datasets.ros.maps import Raster, write_map_bag
 from datasets.types import Trajectory
 from mapping.config import MappingConfig
 from mapping.exports import Classification, MapExportError, MapLayers, write_layers_npz, write_map_server
-from mapping.figures import plot_before_after_maps, plot_classified, plot_difference, plot_layer
+from mapping.figures import (
+    plot_before_after_maps,
+    plot_classified,
+    plot_difference,
+    plot_layer,
+    png_encoding_in,
+)
 from mapping.frontier import ExplorationSettings, plan_exploration
 from mapping.train import GPParams
 from pipeline.config import ExportConfig
@@ -137,18 +143,20 @@ def write_maps(
     for m in maps.values():
         _ = m.unknown  # computed once, before the threads below read it
     bag = maps_dir / ("maps.mcap" if export.bag_format == "mcap" else "maps.bag")
-    # The exploration plans and the bag, and the data files, are written in worker threads, the figures
-    # drawn in this one (matplotlib is not thread-safe): most of the writers' time is compression and
-    # copying, which release the GIL. Only the plans run parallel compiled loops, so no two threads launch
-    # them at once (numba's workqueue threading layer, its fallback without OpenMP, does not allow that).
+    # The exploration plans and the bag, the data files and the figures' PNG encoding run in worker
+    # threads, the figures are drawn in this one (matplotlib is not thread-safe): most of the writers' time
+    # is compression and copying, which release the GIL. Only the plans run parallel compiled loops, so no
+    # two threads launch them at once (numba's workqueue threading layer, its fallback without OpenMP, does
+    # not allow that).
     with ThreadPoolExecutor(max_workers=2, thread_name_prefix="export") as pool:
         bag_written = pool.submit(
             _write_bag, bag, maps, params, settings, trajectories, closures_xy_m, stamp_ns
         )
         data = {name: pool.submit(write_map_data, maps_dir / name, m) for name, m in maps.items()}
-        figures = (
-            _write_figures(maps_dir, maps, trajectories, closures_xy_m, cfg, ate_m) if export.png else []
-        )
+        figures = []
+        if export.png:
+            with png_encoding_in(pool):  # encoded by whichever worker is free, while the next is drawn
+                figures = _write_figures(maps_dir, maps, trajectories, closures_xy_m, cfg, ate_m)
         return [f for name in maps for f in data[name].result()] + figures + [bag_written.result()]
 
 

@@ -7,6 +7,7 @@ import json
 import re
 import shutil
 import subprocess
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import matplotlib.image
@@ -269,6 +270,25 @@ def test_pasted_maps_equal_matplotlib_drawn_ones(tmp_path, kind) -> None:
     diff = np.abs(mine - theirs).max(axis=2)
     assert diff.max() <= 3, f"{(diff > 3).sum()} pixels differ by more than 3 levels"
     assert diff.mean() < (1.0 if kind == "trajectory" else 0.01)  # a translucent map: rounding everywhere
+
+
+def test_png_encoding_in_a_pool_writes_the_same_files(tmp_path) -> None:
+    """Within png_encoding_in, save_figure hands the encoding to the pool: when the block ends, the files
+    are those written directly, byte for byte. An error inside the block is the one raised, after the
+    pending files are written."""
+    kinds = _figure_kinds()
+    names = ["probability", "classified", "before_after"]
+    direct = [figures.save_figure(kinds[k](), tmp_path / f"direct_{k}.png") for k in names]
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        with figures.png_encoding_in(pool):
+            pooled = [figures.save_figure(kinds[k](), tmp_path / f"pooled_{k}.png") for k in names]
+            assert len(figures._PNG_ENCODER.get()[1]) == len(names)  # handed to the pool
+        for a, b in zip(direct, pooled, strict=True):
+            assert a.read_bytes() == b.read_bytes()
+        with pytest.raises(RuntimeError, match="drawing failed"), figures.png_encoding_in(pool):
+            late = figures.save_figure(kinds["variance"](), tmp_path / "late.png")
+            raise RuntimeError("drawing failed")
+        assert png_size(late) is not None
 
 
 def test_figures_that_cannot_be_pasted_are_drawn(tmp_path) -> None:
