@@ -41,7 +41,7 @@ from mapping.index import (
 )
 
 #: Side of a block (m): queries of a chunk are grouped by the square of this side they fall in, counted
-#: from the chunk's lower-left query. At a 0.1 m map resolution a block holds 4 x 4 cells.
+#: from the chunk's lower-left query. At a 0.1 m map resolution a block holds 6 x 6 cells.
 BLOCK_M = 0.6
 #: Fewer queries than this in a block: each is searched alone (warm-started from the previous one).
 MIN_BLOCK = 4
