@@ -225,7 +225,7 @@ def test_the_searches_do_no_reference_counting() -> None:
     does."""
     import numba as nb
 
-    from mapping import index
+    from mapping import blocks, index
 
     bi = BeamIndex.build(random_beams())
     segments, points, k = bi.segments, bi.points, 5
@@ -235,17 +235,44 @@ def test_the_searches_do_no_reference_counting() -> None:
                 np.empty(max(most, 1), dtype))  # fmt: skip
 
     candidates = np.empty((3, max(segments.index.most, 1)))
-    calls = (
+    calls: tuple = (
         (
             index.knn_segments,
             (0.0, 0.0, segments, k, *buffers(segments.index.most, np.float32), candidates),
         ),
         (index.knn_points, (0.0, 0.0, points, k, *buffers(points.index.most, np.float64))),
     )
+    # the block search's per-block and per-query steps (mapping.blocks), on a block centred at (5, 5)
+    cen = np.arange(k, dtype=np.int64)
+    cand, ids = np.ascontiguousarray(bi.seg[:40].T), np.arange(40, dtype=np.int64)
+    raw = (np.empty(4096), np.empty(4096, np.int64))
+    out = (np.empty(k), np.empty(k, np.int64), np.empty(k))
+    calls += (
+        (blocks._points_within, (5.0, 5.0, 3.0, points, *raw)),
+        (blocks._segments_within, (5.0, 5.0, 3.0, segments, np.empty(segments.index.most, np.float32), *raw)),
+        (
+            blocks._query_points,
+            (
+                5.0,
+                5.0,
+                points.xy,
+                k,
+                cen,
+                np.ascontiguousarray(points.xy[:40].T),
+                ids,
+                40,
+                np.empty(40),
+                *out,
+            ),
+        ),
+        (blocks._query_segments, (5.0, 5.0, bi.seg, k, cen, cand, ids, 40, np.empty(40), np.empty(40), *out)),
+    )
     for fn, args in calls:
         assert fn.targetoptions.get("_nrt") is False, fn.__name__
+        expected = fn(*args)
+        assert expected > 0, fn.__name__
         for options, counts in ((fn.targetoptions, False), ({"error_model": "numpy"}, True)):
             fresh = nb.njit(**options)(fn.py_func)
-            assert fresh(*args) == k
+            assert fresh(*args) == expected
             ir = fresh.inspect_llvm(fresh.signatures[0])
             assert ("NRT_incref" in ir or "NRT_decref" in ir) is counts, (fn.__name__, options)
