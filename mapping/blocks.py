@@ -58,6 +58,17 @@ MAX_ENTRY_RATIO = 4.0
 # Range searches around a block's centre: every item within r, with its exact squared distance.
 
 
+@nb.njit(cache=True, error_model="numpy", inline="always")
+def _keep(raw_d2, raw_id, n, d2, i, r2):
+    """Count item i at squared distance d2 if within r2, listing it while ``raw_d2`` has room; the count."""
+    if d2 <= r2:
+        if n < raw_d2.shape[0]:
+            raw_d2[n] = d2
+            raw_id[n] = i
+        n += 1
+    return n
+
+
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _points_within(cx, cy, r, points, raw_d2, raw_id):
     """The points of ``points`` (a :class:`mapping.index.PointSet`) within ``r`` of (cx, cy) into
@@ -69,7 +80,6 @@ def _points_within(cx, cy, r, points, raw_d2, raw_id):
     gx = (cx - grid.x0) / cell
     gy = (cy - grid.y0) / cell
     r2 = r * r
-    cap = raw_d2.shape[0]
     n = 0
     lo_x, hi_x, lo_y, hi_y = _square(gx, gy, r / cell, grid.nx, grid.ny)
     for ix in range(lo_x, hi_x + 1):
@@ -80,12 +90,7 @@ def _points_within(cx, cy, r, points, raw_d2, raw_id):
             for i in range(cell_start[c], cell_start[c + 1]):
                 dx = pts[i, 0] - cx
                 dy = pts[i, 1] - cy
-                d2 = dx * dx + dy * dy
-                if d2 <= r2:
-                    if n < cap:
-                        raw_d2[n] = d2
-                        raw_id[n] = i
-                    n += 1
+                n = _keep(raw_d2, raw_id, n, dx * dx + dy * dy, i, r2)
     return n
 
 
@@ -106,7 +111,6 @@ def _segments_within(cx, cy, r, segments, buf, raw_d2, raw_id):
     r2 = r * r
     lim = r + 1e-4
     lim2 = np.float32(lim * lim)
-    cap = raw_d2.shape[0]
     n = 0
     lo_x, hi_x, lo_y, hi_y = _square(gx, gy, r / cell, grid.nx, grid.ny)
     for ix in range(lo_x, hi_x + 1):
@@ -124,18 +128,14 @@ def _segments_within(cx, cy, r, segments, buf, raw_d2, raw_id):
                     continue
                 i = items[e]
                 d2, _ = _segment_d2(cx, cy, seg, i)
-                if d2 <= r2:
-                    if n < cap:
-                        raw_d2[n] = d2
-                        raw_id[n] = i
-                    n += 1
+                n = _keep(raw_d2, raw_id, n, d2, i, r2)
     return n
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
-def _unique(raw_d2, raw_id, n, table_id, table_gen, gen, out_dc, out_id):
-    """The n (squared distance, id) pairs with repeated ids dropped (first copy kept), as distances (not
-    squared) into ``out_dc`` and ids into ``out_id``; returns their number. ``table_id`` / ``table_gen``
+def _unique(raw_id, n, table_id, table_gen, gen, out_id):
+    """The first n ids of ``raw_id`` with repeats dropped (first copy kept) into ``out_id``; returns their
+    number. ``table_id`` / ``table_gen``
     (a power of two, at least 2 n long): an open-addressing set whose slots count as empty unless their
     generation is ``gen`` (a new one per call), so that it is never cleared."""
     mask = table_id.shape[0] - 1
@@ -149,7 +149,6 @@ def _unique(raw_d2, raw_id, n, table_id, table_gen, gen, out_dc, out_id):
             continue
         table_gen[h] = gen
         table_id[h] = i
-        out_dc[m] = math.sqrt(raw_d2[j])
         out_id[m] = i
         m += 1
     return m
@@ -236,14 +235,13 @@ def _query_segments(qx, qy, seg, k, cen_id, cand, cand_id, m, qd2, qt, best_d2, 
 
 
 class _Scratch(NamedTuple):
-    """A block's candidates: the range search's raw (squared distance, id) pairs, the unique ones (``dc``
-    their distance to the centre, ``ids``), their coordinates ``cand`` (5, n) (a point's x, y; a segment's
+    """A block's candidates: the range search's raw (squared distance, id) pairs, the unique ids ``ids``,
+    their coordinates ``cand`` (5, n) (a point's x, y; a segment's
     row of ``seg``), a query's distances ``qd2`` and parameters ``qt``, and the set of ids seen
     (:func:`_unique`)."""
 
     raw_d2: NDArray[np.float64]
     raw_id: NDArray[np.int64]
-    dc: NDArray[np.float64]
     ids: NDArray[np.int64]
     cand: NDArray[np.float64]
     qd2: NDArray[np.float64]
@@ -259,7 +257,7 @@ def _scratch(n):
     while size < 2 * n:
         size *= 2
     return _Scratch(
-        np.empty(n), np.empty(n, np.int64), np.empty(n), np.empty(n, np.int64), np.empty((5, n)),
+        np.empty(n), np.empty(n, np.int64), np.empty(n, np.int64), np.empty((5, n)),
         np.empty(n), np.empty(n), np.empty(size, np.int64), np.zeros(size, np.int64),
     )  # fmt: skip
 
@@ -311,7 +309,7 @@ def _block_segments(
     if nraw > sc.raw_d2.shape[0]:
         sc = _fit(sc, nraw)
         nraw = _segments_within(cx, cy, r, segments, sbuf, sc.raw_d2, sc.raw_id)
-    m = _unique(sc.raw_d2, sc.raw_id, nraw, sc.table_id, sc.table_gen, gen, sc.dc, sc.ids)
+    m = _unique(sc.raw_id, nraw, sc.table_id, sc.table_gen, gen, sc.ids)
     for c in range(m):
         for col in range(5):
             sc.cand[col, c] = seg[sc.ids[c], col]
