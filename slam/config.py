@@ -33,6 +33,14 @@ class OdometryConfig(BaseModel):
         "the readers' range_max, so long real returns can serve: halls and atria need them)",
     )
     min_range_m: float = Field(0.05, ge=0, description="beams shorter than this are not used")
+    match_points: int = Field(
+        200,
+        ge=0,
+        description="with wheel odometry, a scan with more valid points is registered with about this many "
+        "(at least): those at the widest spacing along the scan (at most 0.5 m) that keeps this many, each "
+        "standing for the points it replaces in the registration's information (Cartographer's adaptive "
+        "voxel filter keeps 200); the submaps get every point; 0: every point",
+    )
     resolution_m: float = Field(0.05, gt=0, le=1, description="cell size of the submap grids")
     voxel_size_m: float = Field(0.1, gt=0, le=5, description="KISS-ICP voxel size (matcher 'kiss_icp')")
     submap_scans: int = Field(

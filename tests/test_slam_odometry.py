@@ -13,7 +13,17 @@ from slam import geometry as se2
 from slam import metrics
 from slam.config import OdometryConfig
 from slam.keyframes import keyframe_of_scan, select_keyframes
-from slam.odometry import FALLBACK, MATCHED, TOO_FEW_POINTS, run_odometry, scans_points_base
+from slam.odometry import (
+    FALLBACK,
+    MATCHED,
+    MAX_MATCH_SPACING_M,
+    TOO_FEW_POINTS,
+    _refine,
+    match_subset,
+    run_odometry,
+    scans_points_base,
+)
+from slam.scan_matching import PointGrid, scan_normals
 from slam.system import wheel_poses_at_scans
 from tests.conftest import data_file
 
@@ -60,7 +70,7 @@ def test_odometry_on_the_loop_world_with_and_without_wheels() -> None:
     # the stretch of the glazed gallery scored here (world x 30..90 m; the glass spans -10..90 m) is
     # degenerate along its axis where no end wall is in range: there the chain follows its
     # prediction (the wheels' 2 % scale error, ~1 m over 60 m) and its covariance says so (sd ~6 cm per
-    # scan along the gallery, ~1 mm across it and ~7 mm along elsewhere); measured 0.38 m ATE with
+    # scan along the gallery, ~1 mm across it and ~7 mm along elsewhere); measured 0.29 m ATE with
     # wheels, 0.16 m with a constant-velocity prediction (the true speed is constant), 1.23 m wheels alone
     gallery = (truth[:, 0] > 30) & (truth[:, 0] < 90) & (np.abs(truth[:, 1]) < 3)
     step_err = se2.between(with_wheels.poses_xytheta[:-1], with_wheels.poses_xytheta[1:]) - se2.between(
@@ -216,3 +226,56 @@ def test_wheels_turned_wrong_by_more_than_the_window_are_searched_again() -> Non
     plain = run_odometry(pts, wheel, OdometryConfig(retry_window_rad=0.0))
     assert plain.retries == 0
     assert abs(np.degrees(se2.between(truth[4], plain.poses_xytheta[5])[2])) > 5.0
+
+
+@pytest.fixture(scope="module")
+def fr079_scans() -> tuple:
+    """fr079.clf's first 400 scans (360 beams at 0.5 deg), base frame, with the logged odometry."""
+    rec = open_dataset(data_file("fr079/fr079.clf.bz2"))
+    pts = scans_points_base(rec.scans, rec.laser_in_base_xytheta, OdometryConfig(), 400)
+    return pts, rec.scan_poses.poses_xytheta[:400]
+
+
+def test_a_dense_scan_is_thinned_evenly_along_itself(fr079_scans) -> None:
+    pts, _ = fr079_scans
+    counts = []
+    for scan in pts[::40]:
+        idx = match_subset(scan, 200)
+        assert scan.shape[0] > 200 and 200 <= idx.size < scan.shape[0]
+        assert np.all(np.diff(idx) > 0)  # beam order
+        gap = np.hypot(*np.diff(scan[idx], axis=0).T)
+        spacing = gap.min()
+        assert spacing <= MAX_MATCH_SPACING_M + 1e-12
+        # every dropped point lies within the spacing of the last point kept before it
+        last = np.maximum.accumulate(
+            np.where(np.isin(np.arange(scan.shape[0]), idx), np.arange(scan.shape[0]), 0)
+        )
+        dropped = np.setdiff1d(np.arange(scan.shape[0]), idx)
+        assert np.all(np.hypot(*(scan[dropped] - scan[last[dropped]]).T) < spacing + 1e-9)
+        counts.append(idx.size)
+    assert max(counts) < 240  # about the target: the widest spacing that keeps 200
+    # a scan of no more points than the target, or a target of 0, keeps every point
+    np.testing.assert_array_equal(match_subset(pts[0][:150], 200), np.arange(150))
+    np.testing.assert_array_equal(match_subset(pts[0], 0), np.arange(pts[0].shape[0]))
+    # points farther apart than the widest spacing are all kept
+    ring = 100.0 * np.stack([np.cos(np.arange(300) * 0.02), np.sin(np.arange(300) * 0.02)], axis=1)
+    np.testing.assert_array_equal(match_subset(ring, 200), np.arange(300))
+
+
+def test_each_kept_point_counts_for_the_points_it_stands_for(fr079_scans) -> None:
+    """The refinement of a thinned scan with weight w has the optimum and information of w copies of each
+    kept point: the information of a dense scan is not lost by thinning it."""
+    pts, wheel = fr079_scans
+    cfg = OdometryConfig()
+    grid = PointGrid.around(wheel[0, :2], 40.0, radius_m=cfg.max_correspondence_m, sigma_m=cfg.resolution_m)
+    rot = se2.rot3(wheel[0, 2])[:2, :2]
+    grid.insert(pts[0] @ rot.T + wheel[0, :2], scan_normals(pts[0]) @ rot.T)
+    scan = pts[10][match_subset(pts[10], 120)]
+    prior = np.diag([100.0, 100.0, 400.0])
+    start = wheel[10] + np.array([0.03, -0.02, 0.01])
+    thinned = _refine(grid, scan, start, wheel[10], prior, None, cfg, True, 3.0)
+    copies = _refine(grid, np.repeat(scan, 3, axis=0), start, wheel[10], prior, None, cfg, True)
+    np.testing.assert_allclose(thinned[1], copies[1], atol=1e-9)
+    np.testing.assert_allclose(thinned[2], copies[2], rtol=1e-9)
+    plain = _refine(grid, scan, start, wheel[10], prior, None, cfg, True)
+    assert np.trace(plain[2]) < 0.5 * np.trace(thinned[2])  # the weight is not ignored
