@@ -506,9 +506,8 @@ class _Odometer:
     def use_scan(self, pts: FloatArray) -> FloatArray:
         """Scan ``pts`` (P, 2) becomes the current one: returns the points (M, 2) that register it, each
         standing for ``P / M`` points in the registration's information: with wheel odometry those of
-        :func:`match_subset`; without, every point (the wide search from a constant-velocity guess and its
-        refinement need them: thinned, seattle's scans alone drifted 0.2 m instead of 0.06 m). The submaps
-        get every point."""
+        :func:`match_subset`; without, every point (the refinement after a wide search from a
+        constant-velocity guess needs them). The submaps get every point."""
         self.full = pts
         wheels = self.wheel_inc is not None
         self.sel = match_subset(pts, self.cfg.match_points if wheels else 0)
