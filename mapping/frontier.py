@@ -316,8 +316,8 @@ def candidate_poses(
 @nb.njit(cache=True)
 def _cast_scans(poses, offsets, range_max, grid, blocking, cell_gain, seen_by):
     """Per pose (N, 3): the sum of ``cell_gain`` (ny, nx) over the cells its rays see (each once), rays
-    stopping in ``blocking`` cells or at the grid's edge. ``seen_by`` (ny, nx) int64 is scratch: on return
-    it holds, per cell, 1 + the last pose that saw it (0: none)."""
+    stopping in ``blocking`` cells or at the grid's edge. ``seen_by`` (ny, nx), int32 or int64, is scratch: on
+    return it holds, per cell, 1 + the last pose that saw it (0: none)."""
     n = poses.shape[0]
     gains = np.zeros(n)
     for i in range(n):
@@ -357,15 +357,16 @@ def variance_reduction_per_cell(variance: FloatArray, noise_var: float) -> Float
 
 
 @nb.njit(cache=True, parallel=True)
-def _cast_scans_parallel(poses, offsets, range_max, grid, blocking, cell_gain, chunks):
-    """:func:`_cast_scans` of the (N, 3) poses in ``chunks`` parallel runs, each with its own scratch."""
+def _cast_scans_parallel(poses, offsets, range_max, grid, blocking, cell_gain, seen_by):
+    """:func:`_cast_scans` of the (N, 3) poses in parallel runs, one per zeroed (ny, nx) scratch of
+    ``seen_by`` (C, ny, nx)."""
     n = poses.shape[0]
+    chunks = seen_by.shape[0]
     gains = np.zeros(n)
     for c in nb.prange(chunks):
         lo = c * n // chunks
         hi = (c + 1) * n // chunks
-        seen_by = np.zeros(blocking.shape, np.int32)
-        gains[lo:hi] = _cast_scans(poses[lo:hi], offsets, range_max, grid, blocking, cell_gain, seen_by)
+        gains[lo:hi] = _cast_scans(poses[lo:hi], offsets, range_max, grid, blocking, cell_gain, seen_by[c])
     return gains
 
 
@@ -397,7 +398,9 @@ def _gains(
     """(N,) the summed ``cell_gain`` each pose's scan sees, the poses scanned in parallel."""
     args = _cast_args(poses_xytheta, layers, occupied, cell_gain, laser)
     chunks = max(1, min(args[0].shape[0], nb.get_num_threads()))
-    return _cast_scans_parallel(*args, chunks)
+    # numpy's zeros come from the OS as zero pages, touched only where rays pass (a compiled fill would
+    # write every cell of a big building's map per run)
+    return _cast_scans_parallel(*args, np.zeros((chunks, *occupied.shape), np.int32))
 
 
 def _effective_variance(layers: MapLayers, prior: float) -> FloatArray:

@@ -16,6 +16,7 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
@@ -66,11 +67,12 @@ def classify(probability: NDArray, occupied_threshold: float = 0.65, free_thresh
     return out
 
 
-def grid_centres(
+def grid_axes(
     bounds_xy_m: tuple[float, float, float, float], resolution_m: float
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Cell centres of a grid covering ``(xmin, ymin, xmax, ymax)``: (H*W, 2) row-major points, the origin
-    (lower-left corner) and the shape (H, W) as an int array."""
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The cell centres of a grid covering ``(xmin, ymin, xmax, ymax)`` by axis: (W,) x and (H,) y
+    coordinates (a cell's centre is ``(xs[col], ys[row])``), the origin (lower-left corner) and the shape
+    (H, W) as an int array."""
     x0, y0, x1, y1 = bounds_xy_m
     if not (x1 > x0 and y1 > y0 and resolution_m > 0):
         raise ValueError(f"bad map bounds {bounds_xy_m} or resolution {resolution_m}")
@@ -78,9 +80,18 @@ def grid_centres(
     h = max(1, math.ceil((y1 - y0) / resolution_m - 1e-9))
     xs = x0 + (np.arange(w) + 0.5) * resolution_m
     ys = y0 + (np.arange(h) + 0.5) * resolution_m
+    return xs, ys, np.array([x0, y0]), np.array([h, w])
+
+
+def grid_centres(
+    bounds_xy_m: tuple[float, float, float, float], resolution_m: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Cell centres of a grid covering ``(xmin, ymin, xmax, ymax)``: (H*W, 2) row-major points, the origin
+    (lower-left corner) and the shape (H, W) as an int array (:func:`grid_axes`)."""
+    xs, ys, origin, shape = grid_axes(bounds_xy_m, resolution_m)
     gx, gy = np.meshgrid(xs, ys)
     pts = np.stack([gx.ravel(), gy.ravel()], axis=1)
-    return pts, np.array([x0, y0]), np.array([h, w])
+    return pts, origin, shape
 
 
 def tile_order(h: int, w: int, tile: int = 16) -> NDArray[np.int64]:
@@ -98,6 +109,40 @@ def tile_order(h: int, w: int, tile: int = 16) -> NDArray[np.int64]:
     blocks[:, 1::2] = blocks[:, 1::2, :, ::-1]  # odd rows of each tile right to left
     blocks = blocks.transpose(0, 2, 1, 3).ravel()
     return blocks[blocks >= 0]
+
+
+@nb.njit(cache=True)
+def tile_order_where(selected: NDArray[np.bool_], tile: int = 16) -> NDArray[np.int64]:
+    """The row-major indices of the ``selected`` cells of an (h, w) grid in :func:`tile_order`'s order
+    (``tile_order(h, w, tile)`` filtered by ``selected``), without the (h * w,) order of every cell: a big
+    building's map selects a part of its bounding box."""
+    h, w = selected.shape
+    out = np.empty(np.count_nonzero(selected), np.int64)
+    n = 0
+    for ti in range(0, h, tile):
+        for tj in range(0, w, tile):
+            for r in range(tile):
+                i = ti + r
+                if i >= h:
+                    break
+                for c in range(tile):
+                    j = tj + (c if r % 2 == 0 else tile - 1 - c)
+                    if j < w and selected[i, j]:
+                        out[n] = i * w + j
+                        n += 1
+    return out
+
+
+@nb.njit(cache=True)
+def cell_centres(cells: NDArray[np.int64], xs_m: FloatArray, ys_m: FloatArray) -> FloatArray:
+    """(C, 2) centres ``(xs_m[col], ys_m[row])`` of the row-major ``cells`` (C,) of a grid with the (W,) x and
+    (H,) y coordinates of :func:`grid_axes`."""
+    w = xs_m.size
+    out = np.empty((cells.size, 2))
+    for k in range(cells.size):
+        out[k, 0] = xs_m[cells[k] % w]
+        out[k, 1] = ys_m[cells[k] // w]
+    return out
 
 
 class GPOccupancyMap:
@@ -264,24 +309,33 @@ class GPOccupancyMap:
         """Probability, mean and variance on a grid of ``resolution_m`` over ``bounds_xy_m`` (default: the
         data bounds); any resolution and bounds, no retraining."""
         bounds = bounds_xy_m or self.bounds_xy_m()
-        pts, origin, (h, w) = grid_centres(bounds, resolution_m)
+        xs, ys, origin, shape = grid_axes(bounds, resolution_m)
+        h, w = int(shape[0]), int(shape[1])
         t0 = time.perf_counter()
-        order = tile_order(int(h), int(w))
-        mask = self.reach()  # looked up per row and column of the grid (ReachMask.contains_grid)
-        near = None
-        if mask is not None:
-            near = mask.contains_grid(pts[: int(w), 0], pts[:: int(w), 1]).ravel()[order]
-        tiled = self._query(np.ascontiguousarray(pts[order]), False, near, t0)
-        pred = Prediction(np.empty(order.size), np.empty(order.size), np.empty(order.size))
-        pred.mean[order] = tiled.mean
-        pred.variance[order] = tiled.variance
-        pred.probability[order] = tiled.probability
-        seconds = time.perf_counter() - t0
-        self.last_render_seconds = seconds
+        mask = self.reach()
+        # Only the cells within reach are made into query points (tile by tile, see tile_order); the rest
+        # keep the prior the layers start from.
+        near = np.ones((h, w), dtype=bool) if mask is None else mask.contains_grid(xs, ys)
+        cells = tile_order_where(near)
+        pts = cell_centres(cells, xs, ys)
+        p = self.params
+        probability = np.full(h * w, p.unseen_probability, dtype=np.float32)
+        mean = np.zeros(h * w, dtype=np.float32)
+        variance = np.full(h * w, p.prior_variance, dtype=np.float32)
+        t1 = time.perf_counter()
+        if cells.size:
+            solved = self._solve(pts, False)
+            probability[cells], mean[cells], variance[cells] = (
+                solved.probability,
+                solved.mean,
+                solved.variance,
+            )
+        self._note_query(h * w, t1 - t0, int(cells.size), time.perf_counter() - t1)
+        self.last_render_seconds = time.perf_counter() - t0
         return MapLayers(
-            probability=pred.probability.reshape(h, w).astype(np.float32),
-            mean=pred.mean.reshape(h, w).astype(np.float32),
-            variance=pred.variance.reshape(h, w).astype(np.float32),
+            probability=probability.reshape(h, w),
+            mean=mean.reshape(h, w),
+            variance=variance.reshape(h, w),
             resolution_m=float(resolution_m),
             origin_xy_m=(float(origin[0]), float(origin[1])),
         )

@@ -154,17 +154,33 @@ def _segment_cells(p0, p1, grid):
 def segment_entry_copies(index: GridIndex, seg: FloatArray) -> NDArray[np.float32]:
     """(5, E) float32 copies of the (M, 5) segments ``seg`` for every entry of a segment ``index``, in entry
     order, with the start relative to the centre of the entry's cell (for :func:`knn_segments`)."""
-    nx, ny = index.shape
-    counts = np.diff(index.cell_start)
-    cell_of = np.repeat(np.arange(nx * ny), counts)
-    centre_x = index.origin_xy_m[0] + (cell_of // ny + 0.5) * index.cell_m
-    centre_y = index.origin_xy_m[1] + (cell_of % ny + 0.5) * index.cell_m
-    rows = seg[index.items]
-    out = np.empty((5, rows.shape[0]), np.float32)
-    out[0] = rows[:, 0] - centre_x
-    out[1] = rows[:, 1] - centre_y
-    out[2:] = rows[:, 2:].T
+    out = np.empty((5, index.items.size), np.float32)
+    _entry_copies(
+        index.cell_start,
+        index.items,
+        np.ascontiguousarray(seg, dtype=np.float64),
+        float(index.origin_xy_m[0]),
+        float(index.origin_xy_m[1]),
+        float(index.cell_m),
+        int(index.shape[1]),
+        out,
+    )
     return out
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _entry_copies(cell_start, items, seg, x0, y0, cell_m, ny, out):
+    """Fill ``out`` (5, E) for :func:`segment_entry_copies`: a compiled walk over the cells (numpy's per-entry
+    cell ids, divisions and gathers cost a big building's map seconds)."""
+    for c in range(cell_start.size - 1):
+        centre_x = x0 + (c // ny + 0.5) * cell_m
+        centre_y = y0 + (c % ny + 0.5) * cell_m
+        for e in range(cell_start[c], cell_start[c + 1]):
+            s = items[e]
+            out[0, e] = seg[s, 0] - centre_x
+            out[1, e] = seg[s, 1] - centre_y
+            for k in range(2, 5):
+                out[k, e] = seg[s, k]
 
 
 def build_segment_index(starts_xy_m: FloatArray, ends_xy_m: FloatArray, cell_m: float) -> GridIndex:

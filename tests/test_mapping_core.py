@@ -7,7 +7,7 @@ import pytest
 
 from mapping.beams import beams_from_scans
 from mapping.core import NEGLIGIBLE_KERNEL
-from mapping.gpmap import GPOccupancyMap, classify, grid_centres, tile_order
+from mapping.gpmap import GPOccupancyMap, classify, grid_centres, tile_order, tile_order_where
 from mapping.kernels import make_kernel
 from mapping.neighbours import BeamIndex
 from mapping.pls import pls_probability
@@ -156,6 +156,40 @@ def test_tile_order_lists_every_cell_tile_by_tile() -> None:
     assert tile_order(4, 5, 2).tolist() == expected
     order = tile_order(37, 53)
     assert np.array_equal(np.sort(order), np.arange(37 * 53))
+
+
+@pytest.mark.parametrize("shape", [(4, 5), (37, 53), (16, 16), (1, 40), (33, 1)])
+@pytest.mark.parametrize("share", [0.0, 0.3, 1.0])
+def test_tile_order_where_keeps_tile_orders_order_of_the_selected_cells(shape, share) -> None:
+    rng = np.random.default_rng(shape[0] * 100 + shape[1])
+    selected = rng.random(shape) < share
+    order = tile_order(*shape)
+    expected = order[selected.ravel()[order]]
+    for tile in (2, 16):
+        order = tile_order(*shape, tile)
+        assert np.array_equal(tile_order_where(selected, tile), order[selected.ravel()[order]])
+    assert np.array_equal(tile_order_where(selected), expected)
+
+
+def test_segment_entry_copies_hold_each_segment_relative_to_its_entrys_cell() -> None:
+    """Every entry of the segment index carries its segment, the start relative to the centre of the entry's
+    cell, computed in float64 and rounded to float32 once (the compiled walk equals the definition)."""
+    from mapping.index import build_segment_index, segment_entry_copies
+
+    seg = BeamIndex.build(random_beams(3)).seg
+    index = build_segment_index(seg[:, :2], seg[:, :2] + seg[:, 2:4], 0.7)
+    copies = segment_entry_copies(index, seg)
+    nx, ny = index.shape
+    cell_of = np.repeat(np.arange(nx * ny), np.diff(index.cell_start))
+    centre = index.origin_xy_m + (np.c_[cell_of // ny, cell_of % ny] + 0.5) * index.cell_m
+    rows = seg[index.items]
+    assert (
+        copies.dtype == np.float32
+        and copies.shape == (5, index.items.size)
+        and index.items.size > seg.shape[0]
+    )
+    assert np.array_equal(copies[:2], (rows[:, :2] - centre).T.astype(np.float32))
+    assert np.array_equal(copies[2:], rows[:, 2:].T.astype(np.float32))
 
 
 def test_render_equals_query_of_all_cell_centres() -> None:
