@@ -44,6 +44,10 @@ from slam.result import SlamResult
 from slam.system import run_slam_recording
 
 STAMP_TOLERANCE_NS = 50_000_000  # 50 ms: a relation stamp farther from every scan stamp is not matched
+#: A relation whose two scans lie at most this far apart along the odometry path (m) is local: it measures
+#: the front end (scan matching on the wheels); the others join two passes and measure the loop closures.
+#: The benchmark's relations are of both kinds, metres of travel apart or hundreds.
+LOCAL_TRAVEL_M = 10.0
 
 
 def evaluate_slam(
@@ -92,7 +96,7 @@ def evaluate_slam(
     if ref is not None:
         out["reference"]["scan_matching"] = scan_matching
     if relations is not None:
-        out["relations"] = score_relations(result, relations, rel_match)
+        out["relations"] = score_relations(result, relations, rel_match, wheel_poses_of(rec))
     out["table"] = _table(out)
     return out
 
@@ -271,20 +275,50 @@ def match_relations(rec: Recording, relations: Any, relations_path: str | Path) 
     return best
 
 
-def score_relations(result: SlamResult, relations: Any, matched: tuple) -> dict[str, Any]:
+def wheel_poses_of(rec: Recording) -> np.ndarray | None:
+    """(N, 3) the wheel odometry SLAM uses (:func:`slam.system.wheel_odometry`) at the scan stamps, or None
+    when the recording has none."""
+    from slam.system import wheel_odometry, wheel_poses_at_scans
+
+    if rec.scans is None or len(rec.scans) == 0:
+        return None
+    wheel, _ = wheel_odometry(rec)
+    if wheel is None or len(wheel) == 0:
+        return None
+    return wheel_poses_at_scans(wheel, np.asarray(rec.scans.stamps_ns, dtype=np.int64))
+
+
+def score_relations(
+    result: SlamResult, relations: Any, matched: tuple, wheel_xytheta: np.ndarray | None = None
+) -> dict[str, Any]:
     """The relations metric (SPEC keys) of the trajectory after loop closure, plus ``before`` and counts.
 
     The relations are of the robot's base poses (module docstring), so the base poses are scored as they are.
+    ``local`` and ``revisit`` split the relations after loop closure by the travel between their scans
+    (:data:`LOCAL_TRAVEL_M`): the front end's share of the error and the loop closures'. ``wheels_local``,
+    with the (N, 3) wheel poses at the scans ``wheel_xytheta``: the wheel odometry alone on the local
+    relations, what scan matching has to beat.
     """
     name, ok, i1, i2 = matched
+    a, b = i1[ok], i2[ok]
     target = np.column_stack([relations.xyz_m[ok, :2], relations.rpy_rad[ok, 2]])
     out: dict[str, Any] = {}
     for which, base in (("after", result.poses_after_xytheta), ("before", result.poses_before_xytheta)):
-        errs = metrics.relation_errors(base[i1[ok]], base[i2[ok]], target).as_dict()
+        errs = metrics.relation_errors(base[a], base[b], target).as_dict()
         if which == "after":
             out.update(errs)
         else:
             out["before"] = errs
+    path = result.poses_before_xytheta[:, :2]
+    travel_m = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(path, axis=0).T))])
+    local = np.abs(travel_m[b] - travel_m[a]) <= LOCAL_TRAVEL_M
+    after = result.poses_after_xytheta
+    for key, mask in (("local", local), ("revisit", ~local)):
+        out[key] = metrics.relation_errors(after[a[mask]], after[b[mask]], target[mask]).as_dict()
+    out["wheels_local"] = None
+    if wheel_xytheta is not None:
+        w = np.asarray(wheel_xytheta, dtype=np.float64)
+        out["wheels_local"] = metrics.relation_errors(w[a[local]], w[b[local]], target[local]).as_dict()
     out["unmatched"] = int(np.sum(~ok))
     out["matched_by"] = name
     return out
@@ -313,6 +347,15 @@ def _table(out: dict[str, Any]) -> dict[str, Any]:
         rows["relations"] = rel["count"]
         rows["relations translation mean / std (m)"] = f"{rel['trans_mean_m']:.4f} / {rel['trans_std_m']:.4f}"
         rows["relations rotation mean / std (deg)"] = f"{rel['rot_mean_deg']:.3f} / {rel['rot_std_deg']:.3f}"
+        for key, label in (
+            ("local", f"relations local (<= {LOCAL_TRAVEL_M:g} m of travel apart): count, m / deg"),
+            ("revisit", "relations across passes: count, m / deg"),
+            ("wheels_local", "wheel odometry alone, local relations: m / deg"),
+        ):
+            part = rel.get(key)
+            if part and part["count"]:
+                count = "" if key == "wheels_local" else f"{part['count']}, "
+                rows[label] = f"{count}{part['trans_mean_m']:.4f} / {part['rot_mean_deg']:.3f}"
     s = out["slam"]
     rows["scans / keyframes"] = f"{s['scans']} / {s['keyframes']}"
     closures = f"{s['loop_closures_accepted']} / {s['loop_closures_rejected']}"

@@ -71,7 +71,13 @@ from pipeline.evaluate_map import (
     observed_means,
     reference_base_poses,
 )
-from pipeline.evaluate_slam import match_reference_counted, match_relations, score_relations, slam_and_score
+from pipeline.evaluate_slam import (
+    match_reference_counted,
+    match_relations,
+    score_relations,
+    slam_and_score,
+    wheel_poses_of,
+)
 from pipeline.progress import Progress, StageBar
 from pipeline.provenance import provenance
 from slam import geometry as se2
@@ -507,7 +513,7 @@ def _evaluate(
     if ref is not None:
         out["reference"]["scan_matching"] = scan_matching  # as evaluate slam
     if relations is not None:
-        out["relations"] = score_relations(result, relations, rel_match)
+        out["relations"] = score_relations(result, relations, rel_match, wheel_poses_of(rec))
     slam = out["slam"]
     timings["slam_s"] = slam["wall_s"]
     if synthetic:

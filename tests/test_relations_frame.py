@@ -49,6 +49,32 @@ def test_relations_of_the_base_score_zero_with_a_mounting_off_the_base() -> None
     assert out["trans_mean_m"] > 0.1 and out["rot_mean_deg"] < 1e-9
 
 
+def test_relations_split_into_local_and_revisits_with_the_wheels_alone_on_the_local_ones() -> None:
+    """Relations a few metres of travel apart score the front end, those across passes the loop closures;
+    the wheel odometry alone is scored on the local ones."""
+    base = _turning_base_trajectory(200)  # 0.3 m per step: 60 m of travel
+    stamps = np.arange(len(base), dtype=np.int64) * 1_000_000_000
+    rec = SimpleNamespace(laser_in_base_xytheta=np.zeros(3), scans=SimpleNamespace(stamps_ns=stamps), meta={})
+    after = base.copy()
+    after[150:] = se2.compose(after[150:], np.array([0.5, 0.0, 0.0]))  # a jump 45 m of travel in
+    result = SimpleNamespace(poses_after_xytheta=after, poses_before_xytheta=base)
+    a = np.array([0, 10, 20, 140, 0, 30, 100])
+    b = np.array([5, 15, 30, 145, 160, 190, 180])  # local: 1.5, 1.5, 3, 1.5 m; 3 revisits across the jump
+    relations = _relations(base, stamps, a, b)
+    wheels = base + np.array([0.0, 0.1, 0.0])  # off by a constant: no error on relative poses
+    wheels[12] += np.array([0.2, 0.0, 0.0])  # one wheel pose 0.2 m off: the relation 10 -> 15 is not
+    out = score_relations(result, relations, match_relations(rec, relations, "r.relations"), wheels)
+    assert out["count"] == 7
+    assert out["local"]["count"] == 4 and out["local"]["trans_mean_m"] < 1e-9
+    assert out["revisit"]["count"] == 3 and out["revisit"]["trans_mean_m"] > 0.1
+    assert out["wheels_local"]["count"] == 4 and out["wheels_local"]["trans_mean_m"] < 1e-9
+    wheels[15] += np.array([0.2, 0.0, 0.0])  # now the relation 10 -> 15 is off by 0.2 m
+    out = score_relations(result, relations, match_relations(rec, relations, "r.relations"), wheels)
+    assert abs(out["wheels_local"]["trans_mean_m"] - 0.2 / 4) < 1e-9
+    without_wheels = score_relations(result, relations, match_relations(rec, relations, "r.relations"))
+    assert without_wheels["wheels_local"] is None
+
+
 def test_fr079_relations_fit_gmappings_trajectory_in_the_base_frame() -> None:
     """Independent of our SLAM: GMapping's corrected fr079 poses (the laser's; the raw log mounts it 0.04 m
     behind the base) agree with the benchmark's relations better once moved to the base."""
