@@ -243,10 +243,21 @@ def published_table(rows: list[dict[str, Any]]) -> str | None:
             continue
         theirs, source = published
         ours = f"{bench['trans_mean_m']:.4f} m / {bench['rot_mean_deg']:.3f} deg"
-        lines.append([row["name"], ours, theirs, source])
+        parts = [_relations_part(bench.get(key)) for key in ("local", "revisit", "wheels_local")]
+        lines.append([row["name"], ours, theirs, source, *parts])
     if not lines:
         return None
-    return md_table(["recording", "ours: relations after loop closure", "published", "source"], lines)
+    header = ["recording", "ours: relations after loop closure", "published", "source"]
+    header += ["ours, local relations", "ours, across passes", "wheels alone, local relations"]
+    return md_table(header, lines)
+
+
+def _relations_part(part: dict[str, Any] | None) -> str:
+    """``count: m / deg`` of a part of the relations (:func:`pipeline.evaluate_slam.score_relations`), ``-``
+    when the run has none (no wheels, or a JSON from before the split)."""
+    if not part or not part.get("count"):
+        return "-"
+    return f"{part['count']}: {part['trans_mean_m']:.4f} / {part['rot_mean_deg']:.3f}"
 
 
 def slam_table(rows: list[dict[str, Any]]) -> str:
@@ -443,7 +454,9 @@ def suite_markdown(
             "## Against published results",
             "",
             "Mean translation / rotation error against the SLAM benchmark's relations (Kuemmerle et al. "
-            "2009) after loop closure.",
+            "2009) after loop closure; then ours split (count: m / deg) into the local relations (at most "
+            "10 m of travel apart: the front end) and those across passes (the loop closures), and the wheel "
+            "odometry alone on the local ones.",
             "",
             published,
             "",

@@ -146,6 +146,12 @@ def test_suite_page_tables_hold_the_json_figures(suite_run) -> None:
     ours = f"{rel['trans_mean_m']:.4f} m / {rel['rot_mean_deg']:.3f} deg"
     assert published["intel"]["ours: relations after loop closure"] == ours
     assert published["intel"]["published"] == "0.0229 m / 0.453 deg"
+    local, revisit, wheels = (rel[k] for k in ("local", "revisit", "wheels_local"))
+    assert local["count"] + revisit["count"] == rel["count"]
+    local_text = f"{local['count']}: {local['trans_mean_m']:.4f} / {local['rot_mean_deg']:.3f}"
+    assert published["intel"]["ours, local relations"] == local_text
+    wheels_text = f"{wheels['count']}: {wheels['trans_mean_m']:.4f} / {wheels['rot_mean_deg']:.3f}"
+    assert published["intel"]["wheels alone, local relations"] == wheels_text
 
     slam = by_first(table(parts["SLAM"]))
     assert set(slam) == {"intel", "seattle"}  # the rows that ran SLAM
