@@ -217,7 +217,7 @@ def test_readme_comparison_is_the_results_page() -> None:
     if "## Against published results" not in page:
         pytest.skip("docs/results.md has no recording with published relations")
     published = markdown_rows(page.split("## Against published results", 1)[1].split("\n## ", 1)[0])
-    for name, (figure, theirs, _source) in published.items():
+    for name, (figure, theirs, _source, *_split) in published.items():
         assert name in ours, f"README's comparison lacks {name}"
         assert ours[name][0] == figure, f"{name}: README {ours[name][0]}, docs/results.md {figure}"
         assert ours[name][1].startswith(theirs), name
