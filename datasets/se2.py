@@ -73,3 +73,12 @@ def transform_points(poses: FloatArray, points_xy: FloatArray) -> FloatArray:
     x = p[..., 0] + c * q[..., 0] - s * q[..., 1]
     y = p[..., 1] + s * q[..., 0] + c * q[..., 1]
     return np.stack([x, y], axis=-1)
+
+
+def path_length_m(xy_m: FloatArray) -> FloatArray:
+    """(N,) distance travelled (m) along the (N, 2) positions up to each one, 0 at the first (the cumulative
+    length of the straight steps between them)."""
+    xy = np.asarray(xy_m, dtype=np.float64).reshape(-1, 2)
+    if xy.shape[0] == 0:
+        return np.zeros(0)
+    return np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])

@@ -309,8 +309,7 @@ def score_relations(
             out.update(errs)
         else:
             out["before"] = errs
-    path = result.poses_before_xytheta[:, :2]
-    travel_m = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(path, axis=0).T))])
+    travel_m = se2.path_length_m(result.poses_before_xytheta[:, :2])
     local = np.abs(travel_m[b] - travel_m[a]) <= LOCAL_TRAVEL_M
     after = result.poses_after_xytheta
     for key, mask in (("local", local), ("revisit", ~local)):

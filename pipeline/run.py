@@ -20,6 +20,7 @@ import numpy as np
 
 from datasets.errors import DatasetError
 from datasets.registry import guess_format, open_dataset
+from datasets.se2 import path_length_m
 from datasets.types import Recording, Trajectory
 from mapping.beams import beams_from_scan_sequence
 from mapping.build import Bounds, MapBuilder, check_mapper
@@ -325,7 +326,7 @@ def auc_by_cells(
     ``rec`` at its reference poses, ``revisited`` by a second pass, ``seen_once``; with the cell counts."""
     ref = rec.reference.poses_xytheta
     beams = beams_from_scan_sequence(rec.scans, ref, rec.laser_in_base_xytheta)
-    path_m = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(ref[:, :2], axis=0).T))])
+    path_m = path_length_m(ref[:, :2])
     observed, revisited = pass_masks(
         beams, path_m, revisit_gap_m, gt.occupancy.shape, gt.origin_xy_m, gt.resolution_m
     )

@@ -17,6 +17,7 @@ from datasets import se2
 from datasets.se2 import between as between
 from datasets.se2 import compose as compose
 from datasets.se2 import inverse as inverse
+from datasets.se2 import path_length_m as path_length_m
 from datasets.se2 import wrap_angle as wrap
 
 FloatArray = NDArray[np.float64]

@@ -121,8 +121,7 @@ class LoopCloser:
         self.cov_scale = cov_scale
         self.cov_floor = np.zeros((3, 3)) if cov_floor is None else np.asarray(cov_floor, dtype=np.float64)
         poses = odometry.poses_xytheta
-        steps = np.hypot(*np.diff(poses[:, :2], axis=0).T) if len(poses) > 1 else np.zeros(0)
-        self.path_m = np.concatenate([[0.0], np.cumsum(steps)])
+        self.path_m = se2.path_length_m(poses[:, :2]) if len(poses) else np.zeros(1)
         self._targets: OrderedDict[int, PointGrid] = OrderedDict()
         self._pyramids: dict[int, ScorePyramid] = {}
         self._normals: dict[int, FloatArray] = {}

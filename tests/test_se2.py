@@ -110,3 +110,11 @@ def test_older_names_are_the_shared_helpers() -> None:
     assert geometry.compose is se2.compose
     assert geometry.inverse is se2.inverse
     assert geometry.between is se2.between
+
+
+def test_path_length_sums_the_steps() -> None:
+    path_length_m = se2.path_length_m
+    xy = np.array([[0.0, 0.0], [3.0, 4.0], [3.0, 4.0], [3.0, 1.0]])
+    np.testing.assert_allclose(path_length_m(xy), [0.0, 5.0, 5.0, 8.0])
+    assert path_length_m(np.zeros((1, 2))).tolist() == [0.0]
+    assert path_length_m(np.zeros((0, 2))).shape == (0,)

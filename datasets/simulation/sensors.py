@@ -270,7 +270,7 @@ class SmoothPath:
         keep = np.concatenate([[True], seg > 1e-12])
         self._xy = xy[keep]
         self._theta = th[keep]
-        self._s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(self._xy, axis=0).T))])
+        self._s = se2.path_length_m(self._xy)
 
     @staticmethod
     def _line(p0, p1, pieces_xy, pieces_th, step_m) -> None:
