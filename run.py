@@ -219,6 +219,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SIGMA_XY_M,SIGMA_THETA_RAD",
         help="map from seeded noisy poses (GPPOL gets their covariance), score against the true ones",
     )
+    q.add_argument(
+        "--breakdown",
+        action="store_true",
+        help="hold-out protocol: also each AUC by the test points' distance from their laser and by the "
+        "mapped beam endpoints within 1 m of them (where a map wins or loses)",
+    )
     _add_json(q)
     q = ev.add_parser("slam", parents=quiet, help="relations error and ATE of the SLAM trajectory")
     q.add_argument("input", type=Path, help="recording with odometry and scans")

@@ -66,9 +66,10 @@ def holdout_test_points(
     seed: int,
     carmen_180: bool,
     max_range_m: float = HOLDOUT_MAX_RANGE_M,
-) -> tuple[FloatArray, NDArray[np.bool_]]:
+    with_ranges: bool = False,
+) -> tuple[FloatArray, NDArray[np.bool_]] | tuple[FloatArray, NDArray[np.bool_], FloatArray]:
     """Test points of the held-out scans (SPEC section 6): (T, 2) world points and (T,) labels (True =
-    occupied).
+    occupied); with ``with_ranges`` also (T,) each point's distance from its laser (m).
 
     ``rng = random.Random(seed + 1)``; for each held-out scan in order, for each beam ``i`` in order with
     range ``r <= max_range_m``, at angle ``a = theta - pi/2 + i pi / n_beams`` (``carmen_180``) or
@@ -78,6 +79,7 @@ def holdout_test_points(
     xs: list[float] = []
     ys: list[float] = []
     labels: list[bool] = []
+    dists: list[float] = []
     for s in held_out:
         x, y, theta = (float(v) for v in laser_poses_xytheta[s])
         ranges = np.asarray(ranges_m[s], dtype=np.float64)
@@ -92,12 +94,68 @@ def holdout_test_points(
             xs.append(x + r * c)
             ys.append(y + r * sn)
             labels.append(True)
+            dists.append(r)
             for _ in range(max(1, int(r / 2))):
                 d = rng.uniform(0, max(0.0, r - 0.1))
                 xs.append(x + d * c)
                 ys.append(y + d * sn)
                 labels.append(False)
-    return np.stack([np.asarray(xs), np.asarray(ys)], axis=1).reshape(-1, 2), np.asarray(labels, dtype=bool)
+                dists.append(d)
+    points = np.stack([np.asarray(xs), np.asarray(ys)], axis=1).reshape(-1, 2)
+    if with_ranges:
+        return points, np.asarray(labels, dtype=bool), np.asarray(dists, dtype=np.float64)
+    return points, np.asarray(labels, dtype=bool)
+
+
+#: Bins of :func:`auc_by_bins` used by ``evaluate map --breakdown``: a test point's distance from its laser
+#: (m, up to the protocol's 40 m), and the training beams' endpoints within :data:`HIT_RADIUS_M` of it.
+RANGE_EDGES_M = (0.0, 2.0, 5.0, 10.0, 20.0, HOLDOUT_MAX_RANGE_M)
+HIT_COUNT_EDGES = (0.0, 1.0, 5.0, 20.0, 100.0, math.inf)
+HIT_RADIUS_M = 1.0
+
+
+def hits_within(hits_xy_m: FloatArray, points_xy_m: FloatArray, radius_m: float = HIT_RADIUS_M) -> NDArray:
+    """(T,) int64: how many of the (H, 2) ``hits_xy_m`` lie within ``radius_m`` of each (T, 2) point (the
+    local density of returns a map can lean on there)."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+    hits = np.asarray(hits_xy_m, dtype=np.float64).reshape(-1, 2)
+    if hits.shape[0] == 0:
+        return np.zeros(points.shape[0], dtype=np.int64)
+    counts = cKDTree(hits).query_ball_point(points, radius_m, return_length=True)
+    return np.asarray(counts, dtype=np.int64).reshape(points.shape[0])
+
+
+def auc_by_bins(
+    probability: FloatArray, labels: NDArray[np.bool_], values: FloatArray, edges: Sequence[float]
+) -> list[dict]:
+    """The test points split by ``values`` (T,) into the bins ``[edges[i], edges[i + 1])`` (the last one
+    closed): per bin ``from``, ``to`` (None: no upper end), ``test_points``, ``occupied``, ``auc`` of
+    ``probability`` (None unless both labels occur) and the mean probability of its occupied and of its
+    free points (``p_occupied``, ``p_free``; None without any). Where a map wins or loses: near or far from
+    the sensor, where returns are dense or sparse."""
+    p = np.asarray(probability, dtype=np.float64)
+    y = np.asarray(labels, dtype=bool)
+    v = np.asarray(values, dtype=np.float64)
+    out = []
+    for i in range(len(edges) - 1):
+        lo, hi = float(edges[i]), float(edges[i + 1])
+        m = (v >= lo) & ((v <= hi) if i == len(edges) - 2 else (v < hi))
+        yb, pb = y[m], p[m]
+        both = bool(yb.any() and not yb.all())
+        out.append(
+            {
+                "from": lo,
+                "to": None if math.isinf(hi) else hi,  # open-ended (JSON has no infinity)
+                "test_points": int(m.sum()),
+                "occupied": int(yb.sum()),
+                "auc": float(roc_auc(pb, yb)) if both else None,
+                "p_occupied": float(pb[yb].mean()) if yb.any() else None,
+                "p_free": float(pb[~yb].mean()) if (~yb).any() else None,
+            }
+        )
+    return out
 
 
 def is_carmen_180(angles_rad: NDArray, tol_rad: float = 1e-5) -> bool:

@@ -206,6 +206,7 @@ def cmd_evaluate(args: argparse.Namespace, emit_json: EmitJson) -> int:
             progress=progress,
             perturb_poses=args.perturb_poses,
             scan_topic=args.scan_topic,
+            breakdown=args.breakdown,
         )
         return _report(result, args, emit_json, f"map evaluation of {args.input}")
     if args.target == "suite":

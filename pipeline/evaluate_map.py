@@ -44,6 +44,10 @@ from mapping.beams import Beams, compose_laser_poses
 from mapping.build import MAPPERS, Bounds, MapBuilder
 from mapping.config import MappingConfig, SourceNoiseConfig
 from mapping.evaluation import (
+    HIT_COUNT_EDGES,
+    RANGE_EDGES_M,
+    auc_by_bins,
+    hits_within,
     holdout_block_scans,
     holdout_split,
     holdout_test_points,
@@ -192,12 +196,15 @@ def _map_and_score(
     grid_bounds: Bounds | None,
     sort: bool,
     observed: np.ndarray | None = None,
+    breakdown: dict[str, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Train and query GPPOL and GPFOL, build the grid, score the three; times and parameters. With
     ``observed`` (P,) bool (:func:`observed_split`), also each AUC over the test points in observed and in
-    unobserved cells (:func:`_split_aucs`), after the other keys."""
+    unobserved cells (:func:`_split_aucs`), after the other keys; with ``breakdown``
+    (:func:`breakdown_values`), each AUC by bins of it (:func:`_binned_aucs`)."""
     row: dict[str, Any] = {}
     split: dict[str, Any] = {}
+    binned: dict[str, Any] = {}
     for mapper in MAPPERS:
         builder = MapBuilder.from_config(cfg, mapper)
         t0 = time.perf_counter()
@@ -210,6 +217,8 @@ def _map_and_score(
         row[f"log_loss_{mapper}"] = log_loss(p, labels)
         if observed is not None:
             split.update(_split_aucs(p, labels, observed, mapper, cfg))
+        if breakdown is not None:
+            binned.update(_binned_aucs(p, labels, breakdown, mapper))
         row[f"{mapper}_train_s"] = t1 - t0
         row[f"{mapper}_map_and_query_s"] = t2 - t1
         row[f"{mapper}_hyperparameters"] = {"kernel": params.kernel.name, **params.kernel.as_dict()}
@@ -224,8 +233,30 @@ def _map_and_score(
         unobserved = labels[~observed].astype(bool)
         split["unobserved_occupied_test_points"] = int(unobserved.sum())
         split["unobserved_free_test_points"] = int(unobserved.size - unobserved.sum())
+    if breakdown is not None:
+        binned.update(_binned_aucs(p_grid, labels, breakdown, "grid"))
     row.update(split)
+    row.update(binned)
     return row
+
+
+#: The breakdowns of ``evaluate map --breakdown``: (key, bin edges) of :func:`breakdown_values`.
+BREAKDOWNS = (("range_m", RANGE_EDGES_M), ("hits_1m", HIT_COUNT_EDGES))
+
+
+def breakdown_values(beams: Beams, points: np.ndarray, ranges_m: np.ndarray) -> dict[str, np.ndarray]:
+    """Per (P, 2) test point what ``--breakdown`` splits the AUCs by: ``range_m`` (P,), its distance from
+    its laser (``ranges_m``, from :func:`mapping.evaluation.holdout_test_points`), and ``hits_1m`` (P,), the
+    mapped beams' endpoints within 1 m of it (:func:`mapping.evaluation.hits_within`)."""
+    hits = beams.ends_xy_m[np.asarray(beams.is_hit, dtype=bool)]
+    return {"range_m": np.asarray(ranges_m, dtype=np.float64), "hits_1m": hits_within(hits, points)}
+
+
+def _binned_aucs(
+    p: np.ndarray, labels: np.ndarray, breakdown: dict[str, np.ndarray], name: str
+) -> dict[str, Any]:
+    """``by_KEY_NAME`` for each breakdown KEY: :func:`mapping.evaluation.auc_by_bins` of the scores ``p``."""
+    return {f"by_{key}_{name}": auc_by_bins(p, labels, breakdown[key], edges) for key, edges in BREAKDOWNS}
 
 
 def log_loss_means(rows: list[dict[str, Any]]) -> dict[str, float | None]:
@@ -263,6 +294,7 @@ def evaluate_holdout(
     test_base_poses: np.ndarray | None = None,
     block_scans: int | None = None,
     mappable: np.ndarray | None = None,
+    breakdown: bool = False,
 ) -> dict[str, Any]:
     """The hold-out protocol of SPEC section 6 for GPPOL, GPFOL and the grid, one entry per seed.
 
@@ -272,7 +304,9 @@ def evaluate_holdout(
     poses); ``perturb_poses``: see the module docstring (then the covariance is the perturbation's).
     ``block_scans``: scans per held-out block (default :func:`holdout_block_scans`: 40, 10 under 400
     scans). ``mappable`` (N,) bool: the scans that may be mapped (default all; e.g. those with a SLAM pose),
-    the held-out ones never are. Returns ``per_seed`` and ``block_scans``."""
+    the held-out ones never are. ``breakdown``: each AUC also by the test points' distance from their laser
+    and by the mapped endpoints near them (:func:`breakdown_values`). Returns ``per_seed`` and
+    ``block_scans``."""
     scans = rec.scans
     n = len(scans)
     block = block_scans if block_scans is not None else holdout_block_scans(n)
@@ -294,8 +328,8 @@ def evaluate_holdout(
             train = np.setdiff1d(np.arange(n), held)
             if mappable is not None:
                 train = train[np.asarray(mappable, dtype=bool)[train]]
-            pts, labels = holdout_test_points(
-                scans.ranges_m, scans.angles_rad, truth_laser, held.tolist(), seed, carmen_180=carmen
+            pts, labels, ranges_m = holdout_test_points(
+                scans.ranges_m, scans.angles_rad, truth_laser, held.tolist(), seed, carmen, with_ranges=True
             )
             poses, seed_cov = base_poses, cov
             if perturb_poses is not None:
@@ -309,7 +343,8 @@ def evaluate_holdout(
                 "occupied_test_points": int(labels.sum()),
             }
             observed, split = observed_split(beams, pts, cfg.resolution_m)
-            row.update(_map_and_score(beams, seed_cov, cfg, pts, labels, seed, None, True, observed))
+            binned = breakdown_values(beams, pts, ranges_m) if breakdown else None
+            row.update(_map_and_score(beams, seed_cov, cfg, pts, labels, seed, None, True, observed, binned))
             row.update(split)
             per_seed.append(row)
             bar.advance()
@@ -361,6 +396,31 @@ def evaluate_ground_truth(
     return {"per_seed": [row], "sensor_noise": noise, "sensor_noise_from": str(gt_path)}
 
 
+def breakdown_table(rows: list[dict[str, Any]]) -> dict[str, str]:
+    """Table rows of the per-seed breakdowns (:func:`_binned_aucs`), when the rows have them: per bin, the
+    AUC of gppol / gpfol / grid as a mean over the seeds where it is defined ('-' where it never is), and
+    the bin's test points (summed over the seeds, occupied in brackets)."""
+    out: dict[str, str] = {}
+    titles = {"range_m": "distance from the laser", "hits_1m": "endpoints within 1 m"}
+    for key, edges in BREAKDOWNS:
+        if f"by_{key}_gppol" not in (rows[0] if rows else {}):
+            continue
+        unit = " m" if key == "range_m" else ""
+        for i in range(len(edges) - 1):
+            lo, hi = edges[i], edges[i + 1]
+            span = f"{lo:g}-{hi:g}{unit}" if np.isfinite(hi) else f">= {lo:g}{unit}"
+            aucs = []
+            for mapper in (*MAPPERS, "grid"):
+                values = [r[f"by_{key}_{mapper}"][i]["auc"] for r in rows]
+                values = [v for v in values if v is not None]
+                aucs.append(f"{np.mean(values):.4f}" if values else "-")
+            n = sum(r[f"by_{key}_gppol"][i]["test_points"] for r in rows)
+            occ = sum(r[f"by_{key}_gppol"][i]["occupied"] for r in rows)
+            label = f"AUC gppol / gpfol / grid, {titles[key]} {span}"
+            out[label] = f"{' / '.join(aucs)} ({n} points, {occ} occupied)"
+    return out
+
+
 def _percent(share: float | None) -> str:
     return "-" if share is None else f"{100 * share:.1f} %"
 
@@ -372,10 +432,13 @@ def evaluate_map(
     progress: Progress | None = None,
     perturb_poses: tuple[float, float] | str | None = None,
     scan_topic: str | None = None,
+    breakdown: bool = False,
 ) -> dict[str, Any]:
     """Evaluate the mappers on ``input_path``; returns the SPEC section 3 keys (``protocol``, ``seeds``,
     ``auc``: {gppol, gpfol, grid} as means over seeds) plus ``per_seed`` details, the means of
-    :func:`observed_means` (``auc_observed``, ``unobserved_share``) and a ``table``.
+    :func:`observed_means` (``auc_observed``, ``unobserved_share``) and a ``table``. ``breakdown`` (hold-out
+    protocol): each seed's AUCs also by bins of distance from the laser and of mapped endpoints nearby
+    (``by_range_m_*``, ``by_hits_1m_*``), their means in the table.
 
     ``perturb_poses``: ``(sigma_xy_m, sigma_theta_rad)`` or its text form (module docstring)."""
     from datasets.registry import open_dataset
@@ -402,7 +465,9 @@ def evaluate_map(
     else:
         protocol = "holdout"
         used_seeds = list(seeds) if seeds else list(DEFAULT_SEEDS)
-        out = evaluate_holdout(rec, base_poses, used_seeds, cfg, progress, cov, perturb_poses)
+        out = evaluate_holdout(
+            rec, base_poses, used_seeds, cfg, progress, cov, perturb_poses, breakdown=breakdown
+        )
     rows = out["per_seed"]
     auc = {k: float(np.mean([r[f"auc_{k}"] for r in rows])) for k in ("gppol", "gpfol", "grid")}
     if perturb_poses is not None:
@@ -432,6 +497,7 @@ def evaluate_map(
         "-" if v is None else f"{v:.4f}" for v in seen["auc_observed"].values()
     )
     table["test points in unobserved cells"] = _percent(seen["unobserved_share"])
+    table.update(breakdown_table(rows))
     result = {
         "protocol": protocol,
         "seeds": used_seeds,

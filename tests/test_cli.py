@@ -108,6 +108,7 @@ def test_version_is_the_one_of_pyproject() -> None:
         (["-q", "remap", "r"], True),
         (["remap", "r", "-q"], True),
         (["evaluate", "map", "x.clf", "-q"], True),
+        (["evaluate", "map", "x.clf", "--breakdown", "-q"], True),
         (["evaluate", "-q", "suite"], True),
         (["convert", "a", "b", "-q"], True),
         (["bench"], False),

@@ -10,7 +10,10 @@ import pytest
 
 from mapping.beams import beams_from_scans
 from mapping.evaluation import (
+    HIT_COUNT_EDGES,
+    auc_by_bins,
     ground_truth_auc_over,
+    hits_within,
     holdout_split,
     holdout_test_points,
     is_carmen_180,
@@ -73,6 +76,52 @@ def test_test_points_hand_count_and_labels() -> None:
     # free points lie on the beam before the endpoint
     again, _ = holdout_test_points(ranges, angles, poses, [0, 1], seed=5, carmen_180=True)
     np.testing.assert_array_equal(pts, again)
+
+
+def test_test_points_with_their_distance_from_the_laser() -> None:
+    """``with_ranges`` changes nothing else and gives each point's distance from its scan's laser."""
+    ranges = [np.array([0.5, 4.0, 41.0, 9.9]), np.array([np.inf, 3.0, np.nan, 40.0])]
+    angles = [np.linspace(-np.pi / 2, np.pi / 4, 4)] * 2
+    poses = np.array([[1.0, 2.0, 0.3], [-3.0, 0.5, 2.0]])
+    pts, labels = holdout_test_points(ranges, angles, poses, [0, 1], seed=2, carmen_180=True)
+    pts2, labels2, dist = holdout_test_points(ranges, angles, poses, [0, 1], 2, True, with_ranges=True)
+    np.testing.assert_array_equal(pts, pts2)
+    np.testing.assert_array_equal(labels, labels2)
+    # scan 0 gives the first 10 points (1 + 1, 1 + 2, 1 + 4), scan 1 the rest
+    origin = np.where(np.arange(labels.size)[:, None] < 10, poses[0, :2], poses[1, :2])
+    np.testing.assert_allclose(dist, np.hypot(*(pts - origin).T), atol=1e-9)
+    np.testing.assert_array_equal(dist[labels], [0.5, 4.0, 9.9, 3.0, 40.0])
+    assert np.all(dist[~labels] <= np.repeat(dist[labels], [1, 2, 4, 1, 20]))
+
+
+def test_auc_by_bins_counts_and_scores_each_bin() -> None:
+    rng = np.random.default_rng(0)
+    labels = rng.random(400) < 0.3
+    p = np.clip(labels * 0.4 + rng.random(400) * 0.6, 0, 1)
+    values = rng.uniform(0, 10, 400)
+    values[:5] = 10.0  # the last bin is closed: these count
+    values[labels] = np.where(values[labels] < 2, 3.0, values[labels])  # no occupied point below 2
+    rows = auc_by_bins(p, labels, values, (0.0, 2.0, 5.0, 10.0))
+    assert [r["from"] for r in rows] == [0.0, 2.0, 5.0] and [r["to"] for r in rows] == [2.0, 5.0, 10.0]
+    assert sum(r["test_points"] for r in rows) == 400 and sum(r["occupied"] for r in rows) == labels.sum()
+    assert rows[0]["auc"] is None and rows[0]["p_occupied"] is None  # one label only
+    assert rows[0]["p_free"] == pytest.approx(p[values < 2].mean())
+    m = values >= 5
+    assert rows[2]["auc"] == pytest.approx(roc_auc(p[m], labels[m]))
+    assert rows[2]["p_occupied"] == pytest.approx(p[m & labels].mean())
+    # an open-ended last bin is written without infinity (JSON has none)
+    open_rows = auc_by_bins(p, labels, values, (0.0, 5.0, math.inf))
+    assert open_rows[-1]["to"] is None and open_rows[-1]["test_points"] == np.sum(values >= 5)
+    assert HIT_COUNT_EDGES[-1] == math.inf
+
+
+def test_hits_within_counts_like_brute_force() -> None:
+    rng = np.random.default_rng(1)
+    hits = rng.uniform(0, 5, (300, 2))
+    pts = rng.uniform(-1, 6, (200, 2))
+    d = np.hypot(*(pts[:, None, :] - hits[None, :, :]).transpose(2, 0, 1))
+    np.testing.assert_array_equal(hits_within(hits, pts, 0.7), (d <= 0.7).sum(axis=1))
+    np.testing.assert_array_equal(hits_within(np.zeros((0, 2)), pts), np.zeros(200, dtype=np.int64))
 
 
 def test_test_points_use_the_scans_own_angles_when_not_carmen() -> None:

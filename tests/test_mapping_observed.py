@@ -14,6 +14,10 @@ from mapping.beams import Beams, compose_laser_poses
 from mapping.build import MapBuilder
 from mapping.config import MappingConfig
 from mapping.evaluation import (
+    HIT_COUNT_EDGES,
+    RANGE_EDGES_M,
+    auc_by_bins,
+    hits_within,
     holdout_block_scans,
     holdout_split,
     holdout_test_points,
@@ -23,7 +27,13 @@ from mapping.evaluation import (
 )
 from mapping.metrics import roc_auc
 from mapping.train import GPParams
-from pipeline.evaluate_map import evaluate_ground_truth, evaluate_holdout, make_beams, reference_base_poses
+from pipeline.evaluate_map import (
+    breakdown_table,
+    evaluate_ground_truth,
+    evaluate_holdout,
+    make_beams,
+    reference_base_poses,
+)
 from pipeline.progress import Progress
 from tests.conftest import data_file
 
@@ -151,7 +161,7 @@ def intel_seed0():
     rec = open_dataset(path)
     base = reference_base_poses(rec, path)
     cfg = MappingConfig(**FAST)
-    row = evaluate_holdout(rec, base, [0], cfg, Progress())["per_seed"][0]
+    row = evaluate_holdout(rec, base, [0], cfg, Progress(), breakdown=True)["per_seed"][0]
     n = len(rec.scans)
     held = holdout_split(n, 0, block=holdout_block_scans(n))
     train = np.setdiff1d(np.arange(n), held)
@@ -194,6 +204,41 @@ def test_intel_holdout_split_by_observed_cells(intel_seed0) -> None:
         # unobserved cells are where the maps know least
         assert row[f"auc_observed_{mapper}"] > row[f"auc_unobserved_{mapper}"]
         assert 0 <= row[f"wrong_unobserved_{mapper}"] < 0.5
+
+
+def test_intel_holdout_breakdown_by_range_and_nearby_endpoints(intel_seed0) -> None:
+    """``breakdown``: each AUC over the test points of each distance bin and of each bin of mapped endpoints
+    within 1 m, recomputed here from the protocol's points and the grid's probabilities."""
+    row, pts, labels, beams, cfg = intel_seed0
+    p_grid = MapBuilder.from_config(cfg).grid(beams).query(pts)
+    hits = beams.ends_xy_m[beams.is_hit]
+    near = (np.hypot(*(pts[:, None, :] - hits[None, ::7, :]).transpose(2, 0, 1)) <= 1.0).any(axis=1)
+    counts = hits_within(hits, pts)
+    assert np.all(counts[near] >= 1)  # a subsample of the endpoints within 1 m: the count sees them too
+    for key, edges, values in (("range_m", RANGE_EDGES_M, None), ("hits_1m", HIT_COUNT_EDGES, counts)):
+        for mapper in ("gppol", "gpfol", "grid"):
+            bins = row[f"by_{key}_{mapper}"]
+            assert len(bins) == len(edges) - 1
+            assert sum(b["test_points"] for b in bins) == labels.size
+            assert sum(b["occupied"] for b in bins) == labels.sum()
+        if values is None:  # the distance of a test point from its laser is at most the protocol's 40 m
+            assert bins[-1]["to"] == 40.0 and bins[0]["test_points"] > 0
+            continue
+        expected = auc_by_bins(p_grid, labels, values, edges)
+        assert [b["test_points"] for b in row[f"by_{key}_grid"]] == [b["test_points"] for b in expected]
+        for got, want in zip(row[f"by_{key}_grid"], expected, strict=True):
+            assert (got["auc"] is None) == (want["auc"] is None)
+            if want["auc"] is not None:
+                assert got["auc"] == pytest.approx(want["auc"], abs=1e-12)
+    # walls are where the mapped returns are: occupied test points crowd the densest bin, not the emptiest
+    emptiest, densest = row["by_hits_1m_gppol"][0], row["by_hits_1m_gppol"][-1]
+    assert densest["occupied"] / densest["test_points"] > 0.3 > emptiest["occupied"] / emptiest["test_points"]
+    table = breakdown_table([row])
+    assert len(table) == len(RANGE_EDGES_M) - 1 + len(HIT_COUNT_EDGES) - 1
+    first = row["by_range_m_gppol"][0]
+    near_cell = table["AUC gppol / gpfol / grid, distance from the laser 0-2 m"]
+    assert near_cell.startswith(f"{first['auc']:.4f} / ")
+    assert breakdown_table([{k: v for k, v in row.items() if not k.startswith("by_")}]) == {}
 
 
 def test_ground_truth_protocol_splits_the_raster_cells(tmp_path) -> None:
