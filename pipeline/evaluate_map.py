@@ -405,10 +405,18 @@ def breakdown_table(rows: list[dict[str, Any]]) -> dict[str, str]:
     for key, edges in BREAKDOWNS:
         if f"by_{key}_gppol" not in (rows[0] if rows else {}):
             continue
-        unit = " m" if key == "range_m" else ""
         for i in range(len(edges) - 1):
             lo, hi = edges[i], edges[i + 1]
-            span = f"{lo:g}-{hi:g}{unit}" if np.isfinite(hi) else f">= {lo:g}{unit}"
+            if key == "range_m":  # a distance: the bin [lo, hi)
+                span = f"{lo:g}-{hi:g} m"
+            else:  # a count: the integers lo .. hi - 1
+                span = (
+                    f">= {lo:g}"
+                    if not np.isfinite(hi)
+                    else f"{lo:g}"
+                    if hi == lo + 1
+                    else f"{lo:g}-{hi - 1:g}"
+                )
             aucs = []
             for mapper in (*MAPPERS, "grid"):
                 values = [r[f"by_{key}_{mapper}"][i]["auc"] for r in rows]
@@ -498,6 +506,8 @@ def evaluate_map(
     )
     table["test points in unobserved cells"] = _percent(seen["unobserved_share"])
     table.update(breakdown_table(rows))
+    if breakdown and protocol != "holdout":
+        table["AUC by distance / endpoints nearby"] = "- (hold-out protocol only)"
     result = {
         "protocol": protocol,
         "seeds": used_seeds,

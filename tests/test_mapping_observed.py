@@ -238,6 +238,8 @@ def test_intel_holdout_breakdown_by_range_and_nearby_endpoints(intel_seed0) -> N
     first = row["by_range_m_gppol"][0]
     near_cell = table["AUC gppol / gpfol / grid, distance from the laser 0-2 m"]
     assert near_cell.startswith(f"{first['auc']:.4f} / ")
+    hit_rows = [k.split("within 1 m ")[1] for k in table if "endpoints within 1 m" in k]
+    assert hit_rows == ["0", "1-4", "5-19", "20-99", ">= 100"]  # counts: the integers of each bin
     assert breakdown_table([{k: v for k, v in row.items() if not k.startswith("by_")}]) == {}
 
 
@@ -261,6 +263,19 @@ def test_ground_truth_protocol_splits_the_raster_cells(tmp_path) -> None:
     assert row["observed_test_points"] == observed.sum() and 0 < row["unobserved_share"] < 1
     p_grid = MapBuilder.from_config(cfg).grid(beams, gt.bounds_xy_m).query(centres)
     assert row["auc_observed_grid"] == pytest.approx(roc_auc(p_grid[observed], labels[observed]), abs=1e-12)
+
+
+def test_breakdown_is_of_the_holdout_protocol_only(tmp_path) -> None:
+    """A simulated world is scored on its raster: ``--breakdown`` says it does not apply, adds no keys."""
+    from datasets.simulation import simulate
+    from pipeline.evaluate_map import evaluate_map
+
+    bag = tmp_path / "street.bag"
+    simulate("street", bag, seed=0)
+    result = evaluate_map(bag, breakdown=True)
+    assert result["protocol"] == "ground_truth"
+    assert result["table"]["AUC by distance / endpoints nearby"] == "- (hold-out protocol only)"
+    assert not [k for k in result["per_seed"][0] if k.startswith("by_")]
 
 
 def test_suite_rows_carry_the_split_and_the_table_shows_it(intel_seed0) -> None:
