@@ -44,10 +44,6 @@ from slam.result import SlamResult
 from slam.system import run_slam_recording
 
 STAMP_TOLERANCE_NS = 50_000_000  # 50 ms: a relation stamp farther from every scan stamp is not matched
-#: A relation whose two scans lie at most this far apart along the odometry path (m) is local: it measures
-#: the front end (scan matching on the wheels); the others join two passes and measure the loop closures.
-#: The benchmark's relations are of both kinds, metres of travel apart or hundreds.
-LOCAL_TRAVEL_M = 10.0
 
 
 def evaluate_slam(
@@ -295,9 +291,9 @@ def score_relations(
 
     The relations are of the robot's base poses (module docstring), so the base poses are scored as they are.
     ``local`` and ``revisit`` split the relations after loop closure by the travel between their scans
-    (:data:`LOCAL_TRAVEL_M`): the front end's share of the error and the loop closures'. ``wheels_local``,
-    with the (N, 3) wheel poses at the scans ``wheel_xytheta``: the wheel odometry alone on the local
-    relations, what scan matching has to beat.
+    (:data:`slam.metrics.LOCAL_TRAVEL_M`): the front end's share of the error and the loop closures'.
+    ``wheels_local``, with the (N, 3) wheel poses at the scans ``wheel_xytheta``: the wheel odometry alone
+    on the local relations, what scan matching has to beat.
     """
     name, ok, i1, i2 = matched
     a, b = i1[ok], i2[ok]
@@ -310,7 +306,7 @@ def score_relations(
         else:
             out["before"] = errs
     travel_m = se2.path_length_m(result.poses_before_xytheta[:, :2])
-    local = np.abs(travel_m[b] - travel_m[a]) <= LOCAL_TRAVEL_M
+    local = np.abs(travel_m[b] - travel_m[a]) <= metrics.LOCAL_TRAVEL_M
     after = result.poses_after_xytheta
     for key, mask in (("local", local), ("revisit", ~local)):
         out[key] = metrics.relation_errors(after[a[mask]], after[b[mask]], target[mask]).as_dict()
@@ -347,7 +343,7 @@ def _table(out: dict[str, Any]) -> dict[str, Any]:
         rows["relations translation mean / std (m)"] = f"{rel['trans_mean_m']:.4f} / {rel['trans_std_m']:.4f}"
         rows["relations rotation mean / std (deg)"] = f"{rel['rot_mean_deg']:.3f} / {rel['rot_std_deg']:.3f}"
         for key, label in (
-            ("local", f"relations local (<= {LOCAL_TRAVEL_M:g} m of travel apart): count, m / deg"),
+            ("local", f"relations local (<= {metrics.LOCAL_TRAVEL_M:g} m of travel apart): count, m / deg"),
             ("revisit", "relations across passes: count, m / deg"),
             ("wheels_local", "wheel odometry alone, local relations: m / deg"),
         ):

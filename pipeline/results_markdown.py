@@ -20,6 +20,7 @@ from typing import Any
 
 from datasets.paths import REPO_DIR
 from pipeline.provenance import UNKNOWN, machine_text
+from slam.metrics import LOCAL_TRAVEL_M
 
 #: Map protocols of the suite: (key of a row's ``maps``, section title, what it measures).
 MAP_PROTOCOLS: tuple[tuple[str, str, str], ...] = (
@@ -455,8 +456,8 @@ def suite_markdown(
             "",
             "Mean translation / rotation error against the SLAM benchmark's relations (Kuemmerle et al. "
             "2009) after loop closure; then ours split (count: m / deg) into the local relations (at most "
-            "10 m of travel apart: the front end) and those across passes (the loop closures), and the wheel "
-            "odometry alone on the local ones.",
+            f"{LOCAL_TRAVEL_M:g} m of travel apart: the front end) and those across passes (the loop "
+            "closures), and the wheel odometry alone on the local ones.",
             "",
             published,
             "",

@@ -50,6 +50,12 @@ def ate_rmse(estimate_xytheta: FloatArray, reference_xytheta: FloatArray) -> flo
     return float(np.sqrt(np.mean(np.sum((aligned[:, :2] - ref[:, :2]) ** 2, axis=1))))
 
 
+#: A benchmark relation whose two scans lie at most this far apart along the odometry path (m) is local: it
+#: measures the front end (scan matching on the wheels); the others join two passes and measure the loop
+#: closures. The benchmark's relations are of both kinds, metres of travel apart or hundreds.
+LOCAL_TRAVEL_M = 10.0
+
+
 @dataclass(frozen=True)
 class RelationErrors:
     """Per-relation errors and their statistics (SPEC section 3 keys via :meth:`as_dict`)."""
