@@ -45,6 +45,7 @@ from mapping.build import MAPPERS, Bounds, MapBuilder
 from mapping.config import MappingConfig, SourceNoiseConfig
 from mapping.evaluation import (
     HIT_COUNT_EDGES,
+    HIT_RADIUS_M,
     RANGE_EDGES_M,
     auc_by_bins,
     hits_within,
@@ -247,7 +248,8 @@ BREAKDOWNS = (("range_m", RANGE_EDGES_M), ("hits_1m", HIT_COUNT_EDGES))
 def breakdown_values(beams: Beams, points: np.ndarray, ranges_m: np.ndarray) -> dict[str, np.ndarray]:
     """Per (P, 2) test point what ``--breakdown`` splits the AUCs by: ``range_m`` (P,), its distance from
     its laser (``ranges_m``, from :func:`mapping.evaluation.holdout_test_points`), and ``hits_1m`` (P,), the
-    mapped beams' endpoints within 1 m of it (:func:`mapping.evaluation.hits_within`)."""
+    mapped beams' endpoints within :data:`mapping.evaluation.HIT_RADIUS_M` of it
+    (:func:`mapping.evaluation.hits_within`)."""
     hits = beams.ends_xy_m[np.asarray(beams.is_hit, dtype=bool)]
     return {"range_m": np.asarray(ranges_m, dtype=np.float64), "hits_1m": hits_within(hits, points)}
 
@@ -396,27 +398,26 @@ def evaluate_ground_truth(
     return {"per_seed": [row], "sensor_noise": noise, "sensor_noise_from": str(gt_path)}
 
 
+def _bin_label(key: str, lo: float, hi: float) -> str:
+    """A breakdown bin as a table shows it: a distance ``lo-hi m`` ([lo, hi)), a count by its integers
+    (``0``, ``1-4``, ``>= 100``)."""
+    if key == "range_m":
+        return f"distance from the laser {lo:g}-{hi:g} m"
+    title = f"endpoints within {HIT_RADIUS_M:g} m"
+    if not np.isfinite(hi):
+        return f"{title} >= {lo:g}"
+    return f"{title} {lo:g}" if hi == lo + 1 else f"{title} {lo:g}-{hi - 1:g}"
+
+
 def breakdown_table(rows: list[dict[str, Any]]) -> dict[str, str]:
     """Table rows of the per-seed breakdowns (:func:`_binned_aucs`), when the rows have them: per bin, the
     AUC of gppol / gpfol / grid as a mean over the seeds where it is defined ('-' where it never is), and
     the bin's test points (summed over the seeds, occupied in brackets)."""
     out: dict[str, str] = {}
-    titles = {"range_m": "distance from the laser", "hits_1m": "endpoints within 1 m"}
     for key, edges in BREAKDOWNS:
         if f"by_{key}_gppol" not in (rows[0] if rows else {}):
             continue
         for i in range(len(edges) - 1):
-            lo, hi = edges[i], edges[i + 1]
-            if key == "range_m":  # a distance: the bin [lo, hi)
-                span = f"{lo:g}-{hi:g} m"
-            else:  # a count: the integers lo .. hi - 1
-                span = (
-                    f">= {lo:g}"
-                    if not np.isfinite(hi)
-                    else f"{lo:g}"
-                    if hi == lo + 1
-                    else f"{lo:g}-{hi - 1:g}"
-                )
             aucs = []
             for mapper in (*MAPPERS, "grid"):
                 values = [r[f"by_{key}_{mapper}"][i]["auc"] for r in rows]
@@ -424,7 +425,7 @@ def breakdown_table(rows: list[dict[str, Any]]) -> dict[str, str]:
                 aucs.append(f"{np.mean(values):.4f}" if values else "-")
             n = sum(r[f"by_{key}_gppol"][i]["test_points"] for r in rows)
             occ = sum(r[f"by_{key}_gppol"][i]["occupied"] for r in rows)
-            label = f"AUC gppol / gpfol / grid, {titles[key]} {span}"
+            label = f"AUC gppol / gpfol / grid, {_bin_label(key, edges[i], edges[i + 1])}"
             out[label] = f"{' / '.join(aucs)} ({n} points, {occ} occupied)"
     return out
 

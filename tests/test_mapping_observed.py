@@ -167,12 +167,14 @@ def intel_seed0():
     train = np.setdiff1d(np.arange(n), held)
     carmen = all(is_carmen_180(a) for a in rec.scans.angles_rad[:10])
     laser = compose_laser_poses(base, rec.laser_in_base_xytheta)
-    pts, labels = holdout_test_points(rec.scans.ranges_m, rec.scans.angles_rad, laser, held, 0, carmen)
-    return row, pts, labels, make_beams(rec, base, train, cfg), cfg
+    pts, labels, dist = holdout_test_points(
+        rec.scans.ranges_m, rec.scans.angles_rad, laser, held, 0, carmen, with_ranges=True
+    )
+    return row, pts, labels, make_beams(rec, base, train, cfg), cfg, dist
 
 
 def test_intel_holdout_split_by_observed_cells(intel_seed0) -> None:
-    row, pts, labels, beams, cfg = intel_seed0
+    row, pts, labels, beams, cfg, _ = intel_seed0
     assert row["test_points"] == labels.size and row["occupied_test_points"] == labels.sum()
     observed = observed_points(beams, pts, cfg.resolution_m)
     assert row["observed_test_points"] == observed.sum() and row["observed_cell_m"] == cfg.resolution_m
@@ -209,21 +211,19 @@ def test_intel_holdout_split_by_observed_cells(intel_seed0) -> None:
 def test_intel_holdout_breakdown_by_range_and_nearby_endpoints(intel_seed0) -> None:
     """``breakdown``: each AUC over the test points of each distance bin and of each bin of mapped endpoints
     within 1 m, recomputed here from the protocol's points and the grid's probabilities."""
-    row, pts, labels, beams, cfg = intel_seed0
+    row, pts, labels, beams, cfg, dist = intel_seed0
     p_grid = MapBuilder.from_config(cfg).grid(beams).query(pts)
     hits = beams.ends_xy_m[beams.is_hit]
     near = (np.hypot(*(pts[:, None, :] - hits[None, ::7, :]).transpose(2, 0, 1)) <= 1.0).any(axis=1)
     counts = hits_within(hits, pts)
     assert np.all(counts[near] >= 1)  # a subsample of the endpoints within 1 m: the count sees them too
-    for key, edges, values in (("range_m", RANGE_EDGES_M, None), ("hits_1m", HIT_COUNT_EDGES, counts)):
+    assert dist.max() <= 40.0 and row["by_range_m_grid"][-1]["to"] == 40.0  # the protocol's longest beam
+    for key, edges, values in (("range_m", RANGE_EDGES_M, dist), ("hits_1m", HIT_COUNT_EDGES, counts)):
         for mapper in ("gppol", "gpfol", "grid"):
             bins = row[f"by_{key}_{mapper}"]
             assert len(bins) == len(edges) - 1
             assert sum(b["test_points"] for b in bins) == labels.size
             assert sum(b["occupied"] for b in bins) == labels.sum()
-        if values is None:  # the distance of a test point from its laser is at most the protocol's 40 m
-            assert bins[-1]["to"] == 40.0 and bins[0]["test_points"] > 0
-            continue
         expected = auc_by_bins(p_grid, labels, values, edges)
         assert [b["test_points"] for b in row[f"by_{key}_grid"]] == [b["test_points"] for b in expected]
         for got, want in zip(row[f"by_{key}_grid"], expected, strict=True):
