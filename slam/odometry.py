@@ -306,6 +306,11 @@ class _KissRegistration:
         )
 
 
+#: Translation windows of at most this many cells each side are searched exhaustively (correlative_search
+#: without its coarse-to-fine stage).
+EXHAUSTIVE_MAX_CELLS = 4
+
+
 def search_window(
     target: PointGrid,
     points_xy: FloatArray,
@@ -317,15 +322,20 @@ def search_window(
     prior_weight: float = 0.0,
     thin: bool = False,
 ) -> SearchResult:
-    """Correlative search of ``center +- window``: exhaustive for a window of a few cells (the wheel-seeded
-    case), by branch and bound for wider ones (no wheels, sparse scans), where it is exact and much faster
-    and weighs the score against the motion prior ``(sigma_xy_m, sigma_theta_rad)`` of the centre
-    (:func:`slam.scan_matching.branch_and_bound_search`). Wide rotation windows use a step of at least
-    0.25 deg (the refinement that follows recovers the rest); ``thin`` searches with one point per 2 x 2
-    cells (dense scans)."""
-    if window_m <= 4 * target.resolution_m and window_rad <= 0.2:
-        return correlative_search(target, points_xy, center_xytheta, window_m, window_rad, theta_step_rad)
+    """Correlative search of ``center +- window``: exhaustive when the translation window spans a few
+    cells and no motion prior is weighed (the wheel-seeded search, and its retry over every heading within
+    ``retry_window_rad``: there the exhaustive pass costs less than the score pyramid branch and bound would
+    build over the scan's whole reach), else by branch and bound (no wheels, sparse scans), which is exact
+    too, much faster in wide windows, and weighs the score against the motion prior ``(sigma_xy_m,
+    sigma_theta_rad)`` of the centre (:func:`slam.scan_matching.branch_and_bound_search`). Wide rotation
+    windows use a step of at least 0.25 deg (the refinement that follows recovers the rest); ``thin``
+    searches with one point per 2 x 2 cells (dense scans, branch and bound)."""
     step = max(theta_step_rad, math.radians(0.25)) if window_rad > 0.2 else theta_step_rad
+    few_cells = math.ceil(window_m / target.resolution_m) <= EXHAUSTIVE_MAX_CELLS
+    if few_cells and (window_rad <= 0.2 or prior_weight == 0.0):
+        return correlative_search(
+            target, points_xy, center_xytheta, window_m, window_rad, step, coarse_factor=EXHAUSTIVE_MAX_CELLS
+        )
     sxy, sth = sigma_xytheta if sigma_xytheta is not None else (None, None)
     if thin:
         # one point per 2x2 cells, as a dense scanner's neighbouring beams score the same cells (681 beams

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from slam import geometry as se2
+from slam.odometry import search_window
 from slam.scan_matching import (
     PointGrid,
     ScorePyramid,
@@ -223,6 +224,24 @@ def test_branch_and_bound_finds_the_exhaustive_optimum(trial: int) -> None:
     # a score the window cannot reach prunes everything: no pose
     none = branch_and_bound_search(grid, scan, map_pose, 1.0, 0.6, step, min_score=0.99)
     assert none.score == 0.0 and np.array_equal(none.pose_xytheta, map_pose)
+
+
+@pytest.mark.parametrize("trial", range(3))
+def test_a_wide_heading_search_over_few_cells_is_exhaustive_and_exact(trial: int) -> None:
+    """The odometry's retry (every heading within 0.5 rad, a translation window of two cells, no prior) is
+    searched exhaustively instead of building a score pyramid over the scan's reach: the same lattice of
+    poses, so the same best pose and score as branch and bound."""
+    rng = np.random.default_rng(10 + trial)
+    map_pose = np.array([3.0, 1.5, 0.2])
+    grid, _ = _map(map_pose, ROOM)
+    true_pose = se2.compose(map_pose, rng.uniform([-0.08, -0.08, -0.45], [0.08, 0.08, 0.45]))
+    scan = cast(true_pose, ROOM, n=180)
+    found = search_window(grid, scan, map_pose, 0.1, 0.5, 0.0044)
+    assert grid._pyramid_buffer.size == 0  # no pyramid was built
+    bnb = branch_and_bound_search(grid, scan, map_pose, 0.1, 0.5, 0.0044)  # step >= 0.25 deg: kept
+    np.testing.assert_allclose(found.pose_xytheta, bnb.pose_xytheta, atol=1e-9)
+    assert found.score == pytest.approx(bnb.score, rel=1e-12)
+    assert abs(se2.between(true_pose, found.pose_xytheta)[2]) < np.radians(0.5)
 
 
 def test_the_motion_prior_picks_the_pose_near_the_prediction_among_equal_matches() -> None:
