@@ -895,9 +895,21 @@ def branch_and_bound_search(
     if isinstance(grid, ScorePyramid):
         pyramid = grid
     else:
-        # the part of the grid any transformed point can reach
+        # the part of the grid any transformed point can reach: within r_max of the centre, and within
+        # the box of the points at the centre's heading grown by the farthest one's arc over the headings
+        # searched (a point at range r moves at most r |dtheta|) and the translation window
         reach = r_max + window_xy_m + 2 * res
         box = np.array([c[0] - reach, c[1] - reach, c[0] + reach, c[1] + reach])
+        cos_t, sin_t = math.cos(c[2]), math.sin(c[2])
+        wx = cos_t * pts[:, 0] - sin_t * pts[:, 1] + c[0]
+        wy = sin_t * pts[:, 0] + cos_t * pts[:, 1] + c[1]
+        grow = r_max * n_ang * theta_step_rad + window_xy_m + 2 * res
+        box = np.concatenate(
+            [
+                np.maximum(box[:2], [wx.min() - grow, wy.min() - grow]),
+                np.minimum(box[2:], [wx.max() + grow, wy.max() + grow]),
+            ]
+        )
         buf = grid._pyramid_buffer
         pyramid = ScorePyramid.of_grid(grid, bnb_depth(window_xy_m, res), pool, box, buf)
         if pyramid.levels.size > buf.size:  # built in new memory: the next search reuses it
