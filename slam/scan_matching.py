@@ -178,6 +178,7 @@ def _insert_points(
     h, w = nearest.shape
     r2 = radius * radius
     inv2s2 = 1.0 / (2.0 * sigma * sigma)
+    cx2 = np.empty(2 * math.ceil(radius / res) + 1)  # squared x offsets of a footprint's columns
     for k in range(points.shape[0]):
         px = points[k, 0]
         py = points[k, 1]
@@ -188,15 +189,28 @@ def _insert_points(
         touched[1] = max(touched[1], r1)
         touched[2] = min(touched[2], c0)
         touched[3] = max(touched[3], c1)
+        n = c1 - c0
+        for j in range(n):
+            cx = x0 + (c0 + j + 0.5) * res - px
+            cx2[j] = cx * cx
         for jy in range(r0, r1):
             cy = y0 + (jy + 0.5) * res - py
-            for jx in range(c0, c1):
-                cx = x0 + (jx + 0.5) * res - px
-                dd = cx * cx + cy * cy
-                if dd <= r2 and dd < d2[jy, jx]:
-                    d2[jy, jx] = dd
-                    nearest[jy, jx] = first_index + k
-                    score[jy, jx] = math.exp(-dd * inv2s2)
+            cy2 = cy * cy
+            row = d2[jy]
+            # most rows of a wall seen again are already nearer another point: a branch-free pass (vector
+            # code) finds the rows this point improves, and only those are written
+            better = False
+            for j in range(n):
+                dd = cx2[j] + cy2
+                better |= (dd <= r2) & (dd < row[c0 + j])
+            if not better:
+                continue
+            for j in range(n):
+                dd = cx2[j] + cy2
+                if dd <= r2 and dd < row[c0 + j]:
+                    row[c0 + j] = dd
+                    nearest[jy, c0 + j] = first_index + k
+                    score[jy, c0 + j] = math.exp(-dd * inv2s2)
 
 
 @nb.njit(cache=True)

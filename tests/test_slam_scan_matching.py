@@ -141,6 +141,33 @@ def test_grid_insert_and_reset() -> None:
     assert len(grid) == 0 and np.all(grid.nearest == -1) and np.all(grid.score == 0)
 
 
+def test_grid_insertion_equals_a_cell_by_cell_reference() -> None:
+    """Every cell holds the first of the nearest points within the radius (its distance stored in float32)
+    and that distance's score, whether points come in one batch or in batches that revisit the same walls
+    (whose rows the compiled insertion skips when no cell improves)."""
+    rng = np.random.default_rng(5)
+    wall = np.column_stack([np.linspace(-1.5, 1.5, 120), np.full(120, 0.3)])
+    pts = np.concatenate([wall, wall + rng.normal(0, 0.01, wall.shape), rng.uniform(-2.2, 2.2, (60, 2))])
+    nrm = np.tile([0.0, 1.0], (len(pts), 1))
+    batched = PointGrid.around(np.zeros(2), 2.0, resolution_m=0.05, radius_m=0.3, sigma_m=0.05)
+    for part in np.array_split(np.arange(len(pts)), 4):
+        batched.insert(pts[part], nrm[part])
+    ys, xs = np.mgrid[: batched.shape[0], : batched.shape[1]]
+    centres = batched.origin_xy_m + (np.stack([xs, ys], axis=-1) + 0.5) * batched.resolution_m
+    d2 = np.full(batched.shape, np.inf, np.float32)
+    nearest = np.full(batched.shape, -1, np.int32)
+    score = np.zeros(batched.shape, np.float32)
+    for i, p in enumerate(pts):
+        dd = np.sum((centres - p) ** 2, axis=-1)
+        better = (dd <= 0.3**2) & (dd < d2)
+        d2[better] = dd[better]
+        nearest[better] = i
+        score[better] = np.exp(-dd[better] / (2 * 0.05**2))
+    np.testing.assert_array_equal(batched.nearest, nearest)
+    np.testing.assert_array_equal(batched.score, score)
+    np.testing.assert_array_equal(batched._d2, d2)
+
+
 @pytest.mark.parametrize("spread_m", [0.5, 40.0])
 def test_reset_empties_every_written_cell(spread_m: float) -> None:
     """A reset leaves the grid as a new one: dense points (the bounding box is cleared) and points spread far
