@@ -24,6 +24,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import maximum_filter
 
+from slam import geometry as se2
+
 FloatArray = NDArray[np.float64]
 
 
@@ -914,16 +916,10 @@ def branch_and_bound_search(
         # searched (a point at range r moves at most r |dtheta|) and the translation window
         reach = r_max + window_xy_m + 2 * res
         box = np.array([c[0] - reach, c[1] - reach, c[0] + reach, c[1] + reach])
-        cos_t, sin_t = math.cos(c[2]), math.sin(c[2])
-        wx = cos_t * pts[:, 0] - sin_t * pts[:, 1] + c[0]
-        wy = sin_t * pts[:, 0] + cos_t * pts[:, 1] + c[1]
+        at_centre = se2.transform_points(c, pts)
         grow = r_max * n_ang * theta_step_rad + window_xy_m + 2 * res
-        box = np.concatenate(
-            [
-                np.maximum(box[:2], [wx.min() - grow, wy.min() - grow]),
-                np.minimum(box[2:], [wx.max() + grow, wy.max() + grow]),
-            ]
-        )
+        box[:2] = np.maximum(box[:2], at_centre.min(axis=0) - grow)
+        box[2:] = np.minimum(box[2:], at_centre.max(axis=0) + grow)
         buf = grid._pyramid_buffer
         pyramid = ScorePyramid.of_grid(grid, bnb_depth(window_xy_m, res), pool, box, buf)
         if pyramid.levels.size > buf.size:  # built in new memory: the next search reuses it
