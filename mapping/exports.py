@@ -23,6 +23,7 @@ from functools import cached_property
 from pathlib import Path
 from typing import Any
 
+import numba as nb
 import numpy as np
 import yaml
 from numpy.typing import NDArray
@@ -45,6 +46,31 @@ UNKNOWN_VARIANCE_FRACTION = 0.9
 
 class MapExportError(GpomError):
     """A map file cannot be written or read back."""
+
+
+def finite_range(values: NDArray) -> tuple[float, float] | None:
+    """The smallest and largest finite value of ``values`` (any shape), or None when it has none; reads a
+    big float32 layer in place, without the float64 copy and the boolean index of the direct expression."""
+    a = np.asarray(values)
+    if a.size == 0:
+        return None
+    with np.errstate(invalid="ignore"):
+        lo, hi = np.fmin.reduce(a, axis=None), np.fmax.reduce(a, axis=None)  # NaN only where all are NaN
+    if np.isfinite(lo) and np.isfinite(hi):
+        return float(lo), float(hi)
+    finite = a[np.isfinite(a)]
+    return (float(finite.min()), float(finite.max())) if finite.size else None
+
+
+@nb.njit(cache=True)
+def _above_fraction(variance: NDArray, prior: NDArray, fraction: float) -> NDArray[np.bool_]:
+    """``~(variance <= fraction * prior)`` in float64 over two C-contiguous arrays of one shape, in one pass
+    without the float64 temporaries of the numpy expression."""
+    out = np.empty(variance.shape, dtype=np.bool_)
+    v, p, o = variance.ravel(), prior.ravel(), out.ravel()
+    for i in range(v.size):
+        o[i] = not (np.float64(v[i]) <= fraction * np.float64(p[i]))
+    return out
 
 
 @dataclass(frozen=True)
@@ -72,10 +98,12 @@ class Classification:
 
     def unknown(self, variance: NDArray) -> NDArray[np.bool_]:
         """(H, W) bool: cells whose variance exceeds the fraction of their prior (NaN variance: unknown)."""
-        var = np.asarray(variance, dtype=np.float64)
-        prior = np.asarray(self.prior_variance, dtype=np.float64)
-        with np.errstate(invalid="ignore"):
-            return ~(var <= self.unknown_variance_fraction * prior)
+        var = np.ascontiguousarray(variance)
+        prior = np.ascontiguousarray(self.prior_variance)
+        if var.shape != prior.shape or var.dtype.kind != "f" or prior.dtype.kind != "f":
+            var, prior = np.broadcast_arrays(np.asarray(var, np.float64), np.asarray(prior, np.float64))
+            var, prior = np.ascontiguousarray(var), np.ascontiguousarray(prior)
+        return _above_fraction(var, prior, float(self.unknown_variance_fraction))
 
     def values(self, probability: NDArray, variance: NDArray) -> NDArray[np.int8]:
         """(H, W) int8 OccupancyGrid values: 100 occupied, 0 free, -1 unknown."""
@@ -86,8 +114,7 @@ class Classification:
     def yaml_keys(self) -> dict[str, Any]:
         """The thresholds and the prior as extra map_server YAML keys: ``prior_variance`` is a number when
         it is the same at every cell, else its ``[min, max]`` (the layer is in ``layers.npz``)."""
-        prior = np.asarray(self.prior_variance, dtype=np.float64)
-        lo, hi = float(np.nanmin(prior)), float(np.nanmax(prior))
+        lo, hi = finite_range(self.prior_variance) or (float("nan"), float("nan"))
         return {
             "occupied_threshold_p": float(self.occupied_threshold),
             "free_threshold_p": float(self.free_threshold),
@@ -123,10 +150,21 @@ class MapLayers:
         return None if self.classification is None else self.classification.unknown(self.variance)
 
     def occupancy_values(self) -> NDArray[np.int8]:
-        """(H, W) int8 values 100 / 0 / -1 of the planners' classification."""
+        """(H, W) int8 values 100 / 0 / -1 of the planners' classification (computed once; read-only)."""
         if self.classification is None:
             raise MapExportError("the map has no classification (no prior variance / thresholds)")
-        return self.classification.values(self.probability, self.variance)
+        return self._occupancy_values
+
+    @cached_property
+    def _occupancy_values(self) -> NDArray[np.int8]:
+        values = trinary_occupancy(
+            self.probability,
+            self.unknown,
+            self.classification.occupied_threshold,
+            self.classification.free_threshold,
+        )
+        values.flags.writeable = False
+        return values
 
     def cell_shares(self) -> dict[str, float]:
         """The shares of the map's cells the planners' classification calls ``occupied``, ``free`` (of an

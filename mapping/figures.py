@@ -37,7 +37,7 @@ from matplotlib.patches import Patch
 from numpy.typing import NDArray
 from PIL import Image
 
-from mapping.exports import MapLayers
+from mapping.exports import MapLayers, finite_range
 from mapping.gpmap import FREE, OCCUPIED, UNSURE, classify
 
 CLASS_CMAP = ListedColormap(["0.55", "white", "black"])  # unsure (-1), free (0), occupied (1)
@@ -437,11 +437,10 @@ def _check_mask(unknown: NDArray | None, shape_hw: tuple[int, int]) -> None:
 def _mark_prior(cax: Axes, cbar, prior_variance: float | NDArray) -> None:
     """Mark the prior variance (the level of unobserved cells) on a variance colour bar: a line and a tick
     labelled "unobserved" for one level, a hatched band over the range of a per-cell (H, W) prior."""
-    prior = np.asarray(prior_variance, dtype=np.float64)
-    finite = prior[np.isfinite(prior)]
-    if finite.size == 0:
+    prior_range = finite_range(prior_variance)
+    if prior_range is None:
         return
-    lo, hi = float(finite.min()), float(finite.max())
+    lo, hi = prior_range
     vmin, vmax = cbar.mappable.norm.vmin, cbar.mappable.norm.vmax
     span = max(vmax - vmin, 1e-12)
     if hi - lo <= 1e-6 * span:
@@ -504,20 +503,21 @@ def layer_figure(
         im = _show(ax, data, extent, cmap="gray_r", vmin=0.0, vmax=1.0)
         label = "p(occupied)"
     elif which == "variance":
-        finite = data[np.isfinite(data)]
-        vmax = float(finite.max()) if finite.size else 1.0
+        data_range = finite_range(data)
+        vmax = data_range[1] if data_range is not None else 1.0
         if prior_variance is not None:
-            prior = np.asarray(prior_variance, dtype=np.float64)
-            if prior.ndim and prior.shape != tuple(layers.shape):
-                raise ValueError(f"prior_variance of shape {prior.shape} for a map of shape {layers.shape}")
-            if np.isfinite(prior).any():
-                vmax = max(vmax, float(np.nanmax(prior)))
-        vmin = min(0.0, float(finite.min())) if finite.size else 0.0
+            prior_shape = np.shape(prior_variance)
+            if prior_shape and prior_shape != tuple(layers.shape):
+                raise ValueError(f"prior_variance of shape {prior_shape} for a map of shape {layers.shape}")
+            prior_range = finite_range(prior_variance)
+            if prior_range is not None:
+                vmax = max(vmax, prior_range[1])
+        vmin = min(0.0, data_range[0]) if data_range is not None else 0.0
         im = _show(ax, data, extent, cmap="viridis", vmin=vmin, vmax=max(vmax, vmin + 1e-12))
         label = "GP predictive variance"
     else:
-        finite = np.abs(data[np.isfinite(data)])
-        lim = float(finite.max()) if finite.size else 1.0
+        data_range = finite_range(data)
+        lim = max(abs(data_range[0]), abs(data_range[1])) if data_range is not None else 1.0
         im = _show(ax, data, extent, cmap="RdBu_r", norm=CenteredNorm(0.0, max(lim, 1e-9)))
         label = "GP mean (latent)"
     if show_unknown:
@@ -723,8 +723,8 @@ def difference_figure(
         np.asarray(after.probability, np.float32) - np.asarray(before.probability, np.float32), view.step
     )
     extent = _view_extent(after, view)
-    finite = np.abs(diff[np.isfinite(diff)])
-    lim = max(float(finite.max()) if finite.size else 0.0, 0.05)
+    diff_range = finite_range(diff)
+    lim = max(max(abs(diff_range[0]), abs(diff_range[1])) if diff_range is not None else 0.0, 0.05)
     closures = _check_closures(closures_xy_m)
     legend: list = []
     if path_after_xy_m is not None and len(path_after_xy_m):

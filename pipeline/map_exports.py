@@ -50,7 +50,8 @@ def map_metadata(layers: MapLayers) -> dict[str, Any]:
     if layers.classification is None:
         raise MapExportError("map_metadata: the map has no classification")
     keys = layers.classification.yaml_keys()
-    keys["variance_full_scale"] = float(np.nanmax(layers.classification.prior_variance))
+    prior = keys["prior_variance"]
+    keys["variance_full_scale"] = float(prior[1] if isinstance(prior, list) else prior)
     return keys
 
 

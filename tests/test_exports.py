@@ -19,6 +19,7 @@ from mapping.exports import (
     Classification,
     MapExportError,
     MapLayers,
+    finite_range,
     read_layers_npz,
     read_map_server,
     write_layers_npz,
@@ -55,6 +56,24 @@ def test_classification_unknown_overrides_probability() -> None:
     assert trinary_occupancy(np.array([0.35, np.nan])).tolist() == [0, -1]
     with pytest.raises(MapExportError):
         Classification(np.ones((1, 1), np.float32), 1.5, 0.65, 0.35)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_unknown_mask_and_finite_range_equal_their_numpy_definitions(dtype: type) -> None:
+    rng = np.random.default_rng(3)
+    var = rng.uniform(0.0, 1.0, (41, 29)).astype(dtype)
+    var.reshape(-1)[:3] = (np.nan, np.inf, -np.inf)
+    prior = rng.uniform(0.5, 1.0, var.shape).astype(np.float32)
+    var[5, :10] = 0.9 * prior[5, :10].astype(np.float64)  # at the threshold, as float64 rounds it
+    rule = Classification(prior, 0.9, 0.65, 0.35)
+    with np.errstate(invalid="ignore"):
+        want = ~(np.asarray(var, np.float64) <= 0.9 * np.asarray(prior, np.float64))
+    np.testing.assert_array_equal(rule.unknown(var), want)
+    np.testing.assert_array_equal(rule.unknown(var.T.copy().T), want)  # a Fortran-ordered layer
+    finite = var[np.isfinite(var)]
+    assert finite_range(var) == (float(finite.min()), float(finite.max()))
+    assert finite_range(np.array([np.nan, np.inf])) is None and finite_range(np.zeros(0)) is None
+    assert finite_range(np.array([[2.0, np.nan], [-1.0, 3.0]], np.float32)) == (-1.0, 3.0)
 
 
 def test_map_server_trinary_round_trip(tmp_path: Path) -> None:

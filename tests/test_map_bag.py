@@ -29,6 +29,38 @@ def test_percent_int8() -> None:
     assert v.tolist() == [0, 0, 50, 100, 100, -1]
 
 
+def _edge_values(dtype: type, shape: tuple[int, int]) -> np.ndarray:
+    """Random values in [-0.5, 1.5] with NaN, infinities and exact halves of a percent sprinkled in."""
+    rng = np.random.default_rng(7)
+    v = rng.uniform(-0.5, 1.5, shape)
+    flat = v.reshape(-1)
+    flat[:40] = np.arange(40) * 0.005  # 0.5 %, 1.5 %, ...: ties rounded half to even
+    flat[40:44] = (np.nan, np.inf, -np.inf, 0.35)
+    return rng.permuted(v.reshape(-1)).reshape(shape).astype(dtype)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_percent_int8_and_trinary_equal_their_numpy_definitions(dtype: type) -> None:
+    v = _edge_values(dtype, (37, 53))
+    with np.errstate(invalid="ignore"):
+        x = np.asarray(v, np.float64)
+        ok = np.isfinite(x)
+        want = np.full(x.shape, -1, np.int8)
+        want[ok] = np.clip(np.round(x[ok] * 50.0), 0, 100).astype(np.int8)
+        np.testing.assert_array_equal(percent_int8(v, 2.0), want)
+        unknown = np.random.default_rng(8).uniform(size=v.shape) < 0.2
+        for mask in (None, unknown, unknown.astype(np.float32)):
+            want = np.full(x.shape, -1, np.int8)
+            want[x >= 0.65] = 100
+            want[x <= 0.35] = 0
+            if mask is not None:
+                want[mask.astype(bool)] = -1
+            np.testing.assert_array_equal(trinary_occupancy(v, mask, 0.65, 0.35), want)
+    # non-contiguous views and integer input take the same path
+    np.testing.assert_array_equal(percent_int8(v[::2, ::3], 2.0), percent_int8(v[::2, ::3].copy(), 2.0))
+    assert percent_int8(np.array([0, 1, 3]), 2.0).tolist() == [0, 50, 100]
+
+
 @pytest.mark.parametrize("name", ["maps.bag", "maps.mcap"])
 def test_map_bag_round_trip(tmp_path: Path, name: str) -> None:
     raster = _raster()

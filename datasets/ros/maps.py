@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
@@ -60,12 +61,26 @@ class Raster:
 
 
 def percent_int8(values: NDArray, full_scale: float) -> NDArray[np.int8]:
-    """``round(100 * values / full_scale)`` clipped to 0..100 as int8; NaN becomes -1 (unknown)."""
-    v = np.asarray(values, dtype=np.float64)
-    out = np.full(v.shape, -1, dtype=np.int8)
-    ok = np.isfinite(v)
+    """``round(100 * values / full_scale)`` (half to even) clipped to 0..100 as int8; NaN and infinities
+    become -1 (unknown)."""
+    v = np.asarray(values)
+    if v.dtype.kind != "f":
+        v = v.astype(np.float64)
     scale = 100.0 / full_scale if full_scale > 0 else 0.0
-    out[ok] = np.clip(np.round(v[ok] * scale), 0, 100).astype(np.int8)
+    return _percent_int8(np.ascontiguousarray(v), scale)
+
+
+@nb.njit(cache=True)
+def _percent_int8(values: NDArray, scale: float) -> NDArray[np.int8]:
+    """:func:`percent_int8` of a C-contiguous float array in one pass (float64 arithmetic)."""
+    out = np.empty(values.shape, dtype=np.int8)
+    v, o = values.ravel(), out.ravel()
+    for i in range(v.size):
+        x = np.float64(v[i])
+        if not np.isfinite(x):
+            o[i] = -1
+        else:
+            o[i] = np.int8(min(max(np.rint(x * scale), 0.0), 100.0))
     return out
 
 
@@ -80,16 +95,39 @@ def trinary_occupancy(
     ``unknown`` is set (space no data constrained: it is never free nor occupied)."""
     if not 0.0 < free_threshold < occupied_threshold < 1.0:
         raise DatasetError(f"need 0 < free ({free_threshold}) < occupied ({occupied_threshold}) < 1")
-    p = np.asarray(probability, dtype=np.float64)
-    out = np.full(p.shape, UNKNOWN_VALUE, dtype=np.int8)
-    with np.errstate(invalid="ignore"):
-        out[p >= occupied_threshold] = OCCUPIED_VALUE
-        out[p <= free_threshold] = FREE_VALUE
-    if unknown is not None:
+    p = np.asarray(probability)
+    if p.dtype.kind != "f":
+        p = p.astype(np.float64)
+    if unknown is None:
+        mask = np.zeros(0, dtype=np.bool_)
+    else:
         mask = np.asarray(unknown)
         if mask.shape != p.shape:
             raise DatasetError(f"unknown mask of shape {mask.shape} for a map of shape {p.shape}")
-        out[mask.astype(bool)] = UNKNOWN_VALUE
+        mask = np.ascontiguousarray(mask.astype(np.bool_, copy=False))
+    return _trinary(np.ascontiguousarray(p), mask, float(occupied_threshold), float(free_threshold))
+
+
+@nb.njit(cache=True)
+def _trinary(
+    probability: NDArray, unknown: NDArray[np.bool_], occupied_threshold: float, free_threshold: float
+) -> NDArray[np.int8]:
+    """:func:`trinary_occupancy` of a C-contiguous float array in one pass (float64 comparisons);
+    ``unknown`` is a mask of the same shape, or empty for none."""
+    out = np.empty(probability.shape, dtype=np.int8)
+    p, o = probability.ravel(), out.ravel()
+    u = unknown.ravel()
+    masked = u.size > 0
+    for i in range(p.size):
+        x = np.float64(p[i])
+        if masked and u[i]:
+            o[i] = UNKNOWN_VALUE
+        elif x <= free_threshold:
+            o[i] = FREE_VALUE
+        elif x >= occupied_threshold:
+            o[i] = OCCUPIED_VALUE
+        else:
+            o[i] = UNKNOWN_VALUE
     return out
 
 
@@ -246,9 +284,12 @@ def write_map_bag(
             missing = {"probability", "mean", "variance"} - set(raster.layers)
             if missing:
                 raise DatasetError(f"{path}: map '{name}' lacks layer(s) {', '.join(sorted(missing))}")
-            variance = np.asarray(raster.layers["variance"], np.float64)
-            finite = variance[np.isfinite(variance)]
-            full = variance_full_scale.get(name, float(finite.max()) if finite.size else 1.0)
+            variance = raster.layers["variance"]
+            full = variance_full_scale.get(name)
+            if full is None:
+                finite = np.asarray(variance, np.float64)
+                finite = finite[np.isfinite(finite)]
+                full = float(finite.max()) if finite.size else 1.0
             values = occupancy.get(name)
             if values is None:
                 values = trinary_occupancy(raster.layers["probability"], raster.layers.get("unknown"))
