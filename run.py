@@ -347,7 +347,10 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args([*words, "demo"])
     check_usage(parser, args)
     args.command_line = shlex.join(["python", "run.py", *words])
+    from pipeline.memory import keep_freed_memory
     from pipeline.run_folder import note_interrupt, pending_interrupt
+
+    keep_freed_memory()  # a big building's steps reuse each other's memory (pipeline.memory)
 
     note_interrupt(None)
     in_main_thread = threading.current_thread() is threading.main_thread()
