@@ -3,6 +3,7 @@ origin, orientation and values."""
 
 from __future__ import annotations
 
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 
 from datasets.ros.bag import open_bag
 from datasets.ros.maps import Raster, percent_int8, read_map_bag, trinary_occupancy, write_map_bag
+from datasets.ros.writer import bag_kind_of_path, open_bag_writer
 
 T0 = 1_700_000_000_123_456_789
 
@@ -122,3 +124,31 @@ def test_map_bag_chunks_are_compressed(tmp_path: Path, name: str) -> None:
         assert size > payload
     else:
         assert size < 0.6 * payload  # the random block alone is 0.3 of it
+
+
+@pytest.mark.parametrize("name", ["built.bag", "built.mcap"])
+def test_a_built_message_is_dropped_before_the_bag_copies_its_bytes(tmp_path: Path, name: str) -> None:
+    arrays: list[weakref.ref] = []
+    alive_at_write: list[bool] = []
+    with open_bag_writer(tmp_path / name) as w:
+        raw_write = w._raw.write
+
+        def spy(conn: object, stamp_ns: int, data: bytes) -> None:
+            alive_at_write.append(arrays[-1]() is not None)
+            raw_write(conn, stamp_ns, data)
+
+        w._raw.write = spy
+
+        def build() -> object:
+            values = np.arange(6, dtype=np.float32)
+            arrays.append(weakref.ref(values))
+            return w.types["std_msgs/msg/Float32MultiArray"](
+                layout=w.types["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0), data=values
+            )
+
+        w.write_built("/built", "std_msgs/msg/Float32MultiArray", T0, build, latching=True)
+        w.write("/kept", "std_msgs/msg/Float32MultiArray", T0, build())
+    assert alive_at_write == [False, True]  # write() keeps the caller's message, write_built() does not
+    with open_bag(tmp_path / name, bag_kind_of_path(tmp_path / name)[0]) as bag:
+        data = {topic: np.asarray(msg.data).tolist() for topic, _, msg in bag.messages(["/built", "/kept"])}
+    assert data == {"/built": [0, 1, 2, 3, 4, 5], "/kept": [0, 1, 2, 3, 4, 5]}

@@ -299,7 +299,13 @@ def write_map_bag(
             var = occupancy_grid_msg(w, percent_int8(variance, full), raster, stamp_ns)
             w.write(f"/{name}/occupancy", OCCUPANCY_GRID, stamp_ns, occ, latching=True)
             w.write(f"/{name}/variance", OCCUPANCY_GRID, stamp_ns, var, latching=True)
-            w.write(f"/{name}/grid_map", GRID_MAP, stamp_ns, grid_map_msg(w, raster, stamp_ns), latching=True)
+            w.write_built(
+                f"/{name}/grid_map",
+                GRID_MAP,
+                stamp_ns,
+                lambda r=raster: grid_map_msg(w, r, stamp_ns),
+                latching=True,
+            )
             if name in metadata:
                 text = json.dumps(dict(metadata[name]), sort_keys=True)
                 w.write(f"/{name}/metadata", STRING, stamp_ns, w.types[STRING](data=text), latching=True)

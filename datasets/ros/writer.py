@@ -36,7 +36,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -124,13 +124,36 @@ class BagWriter:
         ``latching`` marks the topic latched (ROS1 ``latching=1``, ROS2 transient-local QoS), for
         ``/tf_static`` and maps. It is taken from the first message of a topic.
         """
+        self._write_bytes(topic, msgtype, stamp_ns, self._serialise(topic, msgtype, msg), latching)
+
+    def write_built(
+        self, topic: str, msgtype: str, stamp_ns: int, build: Callable[[], object], latching: bool = False
+    ) -> None:
+        """:meth:`write` of the message ``build()`` returns, dropped once serialised: a big message's arrays
+        (a building's map layers) and the bag's copies of its bytes are not held at the same time."""
+        self._write_bytes(topic, msgtype, stamp_ns, self._serialise(topic, msgtype, build()), latching)
+
+    def _serialise(self, topic: str, msgtype: str, msg: object) -> bytes | memoryview:
+        if msgtype not in self.types:
+            raise DatasetError(
+                f"{self.path}: unknown message type {shown_name(msgtype)} for topic {shown_name(topic)}"
+            )
+        try:
+            if self.kind == "ros1":
+                return self.typestore.serialize_ros1(msg, msgtype)
+            return self.typestore.serialize_cdr(msg, msgtype)
+        except (SerdeError, TypeError, ValueError, AttributeError, KeyError) as exc:
+            raise DatasetError(
+                f"{self.path}: a {shown_name(msgtype)} message for {shown_name(topic)} cannot be serialised "
+                f"({first_line(exc)})"
+            ) from None
+
+    def _write_bytes(
+        self, topic: str, msgtype: str, stamp_ns: int, data: bytes | memoryview, latching: bool
+    ) -> None:
         key = (topic, msgtype)
         conn = self._conns.get(key)
         if conn is None:
-            if msgtype not in self.types:
-                raise DatasetError(
-                    f"{self.path}: unknown message type {shown_name(msgtype)} for topic {shown_name(topic)}"
-                )
             if self.kind == "ros1":
                 conn = self._raw.add_connection(
                     topic, msgtype, typestore=self.typestore, latching=1 if latching else None
@@ -141,16 +164,6 @@ class BagWriter:
                     topic, msgtype, typestore=self.typestore, offered_qos_profiles=qos
                 )
             self._conns[key] = conn
-        try:
-            if self.kind == "ros1":
-                data = self.typestore.serialize_ros1(msg, msgtype)
-            else:
-                data = self.typestore.serialize_cdr(msg, msgtype)
-        except (SerdeError, TypeError, ValueError, AttributeError, KeyError) as exc:
-            raise DatasetError(
-                f"{self.path}: a {shown_name(msgtype)} message for {shown_name(topic)} cannot be serialised "
-                f"({first_line(exc)})"
-            ) from None
         self._raw.write(conn, int(stamp_ns), data)
         self.counts[topic] = self.counts.get(topic, 0) + 1
 
