@@ -3,10 +3,11 @@
 A run's big steps (rendering a building's maps, writing their exports) allocate and free arrays of hundreds of
 megabytes. glibc's malloc gives every block above its mmap threshold (at most 32 MiB) a mapping of its own and
 unmaps it when freed, so the next big array is faulted in page by page again. On virtual machines whose
-freed pages go back to the host (free page reporting, memory ballooning, as on cloud and CI machines) such a
-fault costs many times a bare machine's. :func:`keep_freed_memory` asks glibc (``mallopt(3)``) to serve big
-blocks from its heap and never to trim it: what one step frees, the next reuses without faults. The process
-keeps its peak memory until it exits; the peak itself does not grow (``bench``'s ``peak_rss_mib``).
+freed pages go back to the host (free page reporting, memory ballooning; the project's development and CI
+machines are such) a fault costs many times a bare machine's. :func:`keep_freed_memory` asks glibc
+(``mallopt(3)``) to serve big blocks from its heap and never to trim it: what one step frees, the next reuses
+without faults. The process keeps its peak memory until it exits; the peak itself does not grow (``bench``'s
+``peak_rss_mib``).
 """
 
 from __future__ import annotations
