@@ -107,9 +107,11 @@ class Classification:
 
     def values(self, probability: NDArray, variance: NDArray) -> NDArray[np.int8]:
         """(H, W) int8 OccupancyGrid values: 100 occupied, 0 free, -1 unknown."""
-        return trinary_occupancy(
-            probability, self.unknown(variance), self.occupied_threshold, self.free_threshold
-        )
+        return self.values_with(probability, self.unknown(variance))
+
+    def values_with(self, probability: NDArray, unknown: NDArray[np.bool_]) -> NDArray[np.int8]:
+        """:meth:`values` with the (H, W) mask :meth:`unknown` already computed."""
+        return trinary_occupancy(probability, unknown, self.occupied_threshold, self.free_threshold)
 
     def yaml_keys(self) -> dict[str, Any]:
         """The thresholds and the prior as extra map_server YAML keys: ``prior_variance`` is a number when
@@ -157,12 +159,7 @@ class MapLayers:
 
     @cached_property
     def _occupancy_values(self) -> NDArray[np.int8]:
-        values = trinary_occupancy(
-            self.probability,
-            self.unknown,
-            self.classification.occupied_threshold,
-            self.classification.free_threshold,
-        )
+        values = self.classification.values_with(self.probability, self.unknown)
         values.flags.writeable = False
         return values
 

@@ -18,7 +18,14 @@ from numpy.typing import NDArray
 from datasets.ros.maps import Raster, write_map_bag
 from datasets.types import Trajectory
 from mapping.config import MappingConfig
-from mapping.exports import Classification, MapExportError, MapLayers, write_layers_npz, write_map_server
+from mapping.exports import (
+    Classification,
+    MapExportError,
+    MapLayers,
+    finite_range,
+    write_layers_npz,
+    write_map_server,
+)
 from mapping.figures import (
     plot_before_after_maps,
     plot_classified,
@@ -50,8 +57,8 @@ def map_metadata(layers: MapLayers) -> dict[str, Any]:
     if layers.classification is None:
         raise MapExportError("map_metadata: the map has no classification")
     keys = layers.classification.yaml_keys()
-    prior = keys["prior_variance"]
-    keys["variance_full_scale"] = float(prior[1] if isinstance(prior, list) else prior)
+    prior_range = finite_range(layers.classification.prior_variance)
+    keys["variance_full_scale"] = prior_range[1] if prior_range is not None else float("nan")
     return keys
 
 
