@@ -290,6 +290,6 @@ def remap_run(
             "wall time (s)": round(timer.total(), 2),
         }
         if config.export.png:
-            write_report(stage, summary)
+            write_report(stage, summary, maps=layers)
         write_summary(stage, summary)
     return summary

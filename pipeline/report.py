@@ -139,10 +139,13 @@ def draw_difference(run_dir: Path, summary: dict[str, Any]) -> Path | None:
     )
 
 
-def draw_trajectory(run_dir: Path, summary: dict[str, Any]) -> Path | None:
+def draw_trajectory(
+    run_dir: Path, summary: dict[str, Any], maps: dict[str, MapLayers] | None = None
+) -> Path | None:
     """``maps/trajectory.png``: the run folder's trajectories with 2-sigma position ellipses of the
     per-scan covariances of ``trajectory/covariances.npz`` (a remap folder: the file its summary names), when
-    present, over the final map; None when the folder holds no trajectory."""
+    present, over the final map; None when the folder holds no trajectory. ``maps``: the folder's maps by
+    name when the caller holds them in memory (a big building's ``layers.npz`` takes seconds to read back)."""
     run_dir = Path(run_dir)
     traj_dir = run_dir / TRAJECTORY_DIR
     poses: dict[str, NDArray] = {}
@@ -162,7 +165,10 @@ def draw_trajectory(run_dir: Path, summary: dict[str, Any]) -> Path | None:
             covariances[name] = covariances_at(stamps[name], cov_stamps, cov)
     layers = None
     for name in _MAP_ORDER:
-        layers = _read_layers(run_dir / "maps" / name / "layers.npz")
+        if maps is not None and name in maps:
+            layers = maps[name]
+        else:
+            layers = _read_layers(run_dir / "maps" / name / "layers.npz")
         if layers is not None:
             break
     n = max(len(p) for p in poses.values())
@@ -178,17 +184,24 @@ def draw_trajectory(run_dir: Path, summary: dict[str, Any]) -> Path | None:
     )
 
 
-def write_report_figures(run_dir: Path, summary: dict[str, Any]) -> tuple[list[Path], list[str]]:
+def write_report_figures(
+    run_dir: Path, summary: dict[str, Any], maps: dict[str, MapLayers] | None = None
+) -> tuple[list[Path], list[str]]:
     """Draw the figures the report shows that ``maps/`` lacks (:func:`draw_difference`,
-    :func:`draw_trajectory`); returns the files drawn and a note for each figure that could not be."""
+    :func:`draw_trajectory`, which uses ``maps``, the folder's maps in memory, instead of reading them);
+    returns the files drawn and a note for each figure that could not be."""
     drawn: list[Path] = []
     notes: list[str] = []
-    maps = Path(run_dir) / "maps"
-    for name, draw in ((DIFFERENCE_PNG, draw_difference), (TRAJECTORY_PNG, draw_trajectory)):
-        if (maps / name).is_file():
+    folder = Path(run_dir) / "maps"
+    draws = (
+        (DIFFERENCE_PNG, lambda: draw_difference(run_dir, summary)),
+        (TRAJECTORY_PNG, lambda: draw_trajectory(run_dir, summary, maps)),
+    )
+    for name, draw in draws:
+        if (folder / name).is_file():
             continue
         try:
-            path = draw(run_dir, summary)
+            path = draw()
         except (GpomError, OSError, ValueError) as exc:
             notes.append(f"maps/{name} could not be drawn: {exc}")
             continue
@@ -375,16 +388,22 @@ def _plain(obj: Any) -> Any:
     return str(obj)
 
 
-def write_report(run_dir: Path, summary: dict[str, Any] | None = None, embed: bool = False) -> Path:
+def write_report(
+    run_dir: Path,
+    summary: dict[str, Any] | None = None,
+    embed: bool = False,
+    maps: dict[str, MapLayers] | None = None,
+) -> Path:
     """Write ``run_dir/report.html`` from the run folder (its ``summary.json`` unless ``summary`` is given,
     so that a run can write the report before the summary, which it writes last); draws the missing
-    figures first (:func:`write_report_figures`). ``embed``: images inline (base64) instead of relative
+    figures first (:func:`write_report_figures`; ``maps``: the folder's maps by name, when the caller
+    holds them, so that they are not read back). ``embed``: images inline (base64) instead of relative
     links. Returns the path of the report."""
     run_dir = Path(run_dir)
     if summary is None:
         summary = read_summary(run_dir)
     summary = json.loads(json.dumps(summary, default=_plain))  # plain JSON types, as summary.json holds
-    _, notes = write_report_figures(run_dir, summary)
+    _, notes = write_report_figures(run_dir, summary, maps)
     path = run_dir / REPORT_NAME
     write_text_atomic(path, render_report(run_dir, summary, notes, embed))
     return path

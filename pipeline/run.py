@@ -273,7 +273,7 @@ def run_pipeline(
         summary["tiles"] = tiles_summary(maps, config)
         summary["map"]["render"] = render_stats
         if config.export.png:
-            write_report(stage, summary)
+            write_report(stage, summary, maps=layers)
         write_summary(stage, summary)
     return summary
 

@@ -381,6 +381,26 @@ def test_report_embeds_and_survives_a_bad_file(tmp_path, run_dir) -> None:
     assert text.count('src="data:image/png;base64,') == 8
 
 
+def test_report_draws_the_trajectory_over_maps_held_in_memory(tmp_path, run_dir, monkeypatch) -> None:
+    """The maps a run holds give the same trajectory figure as its ``layers.npz`` read back, unread."""
+    from mapping.exports import read_layers_npz
+    from pipeline import report
+
+    run = tmp_path / "copy"
+    shutil.copytree(run_dir, run)
+    (run / "maps" / TRAJECTORY_PNG).unlink()
+    maps = {name: read_layers_npz(run / "maps" / name / "layers.npz") for name in ("before", "after")}
+
+    def unread(path):
+        raise AssertionError(f"{path} read back")
+
+    monkeypatch.setattr(report, "_read_layers", unread)
+    write_report(run, maps=maps)
+    assert matplotlib.image.imread(run / "maps" / TRAJECTORY_PNG).tobytes() == (
+        matplotlib.image.imread(run_dir / "maps" / TRAJECTORY_PNG).tobytes()
+    )
+
+
 def _chromium(args: list[str], tmp_path: Path) -> subprocess.CompletedProcess:
     profile = tmp_path / "chromium-profile"
     base = [
