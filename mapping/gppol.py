@@ -10,8 +10,10 @@ without one GPFOL -- the same map object and the same compiled core (:mod:`mappi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
@@ -46,14 +48,14 @@ def input_moments(
     ``beams.source_names`` (indexed by ``beams.source_index``)."""
     M = len(beams)
     if pose_cov_xytheta is None:
-        cov = np.zeros((M, 3, 3))
+        cov, cov_of_beam = np.zeros((1, 3, 3)), np.zeros(M, dtype=np.int64)
     else:
-        all_cov = np.asarray(pose_cov_xytheta, dtype=np.float64).reshape(-1, 3, 3)
-        if M and int(beams.scan_index.max()) >= all_cov.shape[0]:
+        cov = np.asarray(pose_cov_xytheta, dtype=np.float64).reshape(-1, 3, 3)
+        if M and int(beams.scan_index.max()) >= cov.shape[0]:
             raise ValueError(
-                f"{all_cov.shape[0]} pose covariances, but beams of scan {int(beams.scan_index.max())}"
+                f"{cov.shape[0]} pose covariances, but beams of scan {int(beams.scan_index.max())}"
             )
-        cov = all_cov[beams.scan_index]
+        cov_of_beam = beams.scan_index
     if M and int(beams.source_index.max()) >= len(noise_by_source):
         raise ValueError(f"{len(noise_by_source)} sensor noise settings for sources {beams.source_names}")
     var_r = np.array([s.range_var_m2 for s in noise_by_source], dtype=np.float64)
@@ -67,6 +69,7 @@ def input_moments(
         var_b[src] if M else np.zeros(0),
         beams.laser_in_base_xytheta,
         ut or UTParams(),
+        cov_of_beam,
     )
 
 
@@ -120,17 +123,56 @@ class GaussianInputs:
         ``a, b, C0, C1, C2``, the length of its free part, the laser noise's ``C0, C1, C2`` and the scan
         index (:func:`mapping.core._gaussian_inputs`)."""
         mo, lo = self.moments, self.local()
-        d_hit = beams.ranges_m[hit_beam]
-        scan = beams.scan_index.astype(np.float64)
-        occ = np.column_stack(
-            [
-                mo.mean_at(d_hit, hit_beam),
-                mo.packed_cov_at(d_hit, hit_beam),
-                lo.packed_cov_at(d_hit, hit_beam),
-                scan[hit_beam],
-            ]
-        )
-        free_len = np.hypot(*(beams.free_ends_xy_m - beams.origins_xy_m).T)
         fm, fl = self.free(), self.local_free()
-        seg = np.column_stack([fm.a, fm.b, fm.c0, fm.c1, fm.c2, free_len, fl.c0, fl.c1, fl.c2, scan])
-        return np.ascontiguousarray(occ), np.ascontiguousarray(seg)
+        hits = np.ascontiguousarray(hit_beam, dtype=np.int64)
+        occ = np.empty((hits.size, 9))
+        seg = np.empty((len(beams), 24))
+        # one pass over the rows, in parallel: column by column, a 24-column array is walked 24 times
+        _pack_inputs(
+            *(np.ascontiguousarray(m.a) for m in (mo, fm)),
+            *(np.ascontiguousarray(m.b) for m in (mo, fm)),
+            *(np.ascontiguousarray(getattr(m, c)) for m in (mo, lo, fm, fl) for c in ("c0", "c1", "c2")),
+            np.ascontiguousarray(beams.ranges_m, dtype=np.float64),
+            np.ascontiguousarray(beams.origins_xy_m, dtype=np.float64),
+            np.ascontiguousarray(beams.free_ends_xy_m, dtype=np.float64),
+            np.ascontiguousarray(beams.scan_index),
+            hits,
+            occ,
+            seg,
+        )
+        return occ, seg
+
+
+@nb.njit(cache=True, parallel=True)
+def _pack_inputs(
+    a, fa, b, fb, c0, c1, c2, lc0, lc1, lc2, fc0, fc1, fc2, flc0, flc1, flc2, ranges, origins, free_ends,
+    scan, hits, occ, seg,
+):  # fmt: skip
+    """The rows of :meth:`GaussianInputs.core_arrays`: ``occ`` (H, 9) of the endpoints ``hits`` (the mean
+    ``a + d b`` and the packed covariances ``C0 + d (C1 + d C2)`` at their ranges, full and of the laser
+    noise alone, and the scan), ``seg`` (M, 24) of every beam (the free points' ``a, b, C0, C1, C2``, the
+    free part's length, the laser noise's ``C0, C1, C2``, the scan)."""
+    for h in nb.prange(hits.shape[0]):
+        j = hits[h]
+        d = ranges[j]
+        occ[h, 0] = a[j, 0] + d * b[j, 0]
+        occ[h, 1] = a[j, 1] + d * b[j, 1]
+        for c in range(3):
+            occ[h, 2 + c] = c0[j, c] + d * (c1[j, c] + d * c2[j, c])
+            occ[h, 5 + c] = lc0[j, c] + d * (lc1[j, c] + d * lc2[j, c])
+        occ[h, 8] = scan[j]
+    for j in nb.prange(seg.shape[0]):
+        row = seg[j]
+        row[0] = fa[j, 0]
+        row[1] = fa[j, 1]
+        row[2] = fb[j, 0]
+        row[3] = fb[j, 1]
+        for c in range(3):
+            row[4 + c] = fc0[j, c]
+            row[7 + c] = fc1[j, c]
+            row[10 + c] = fc2[j, c]
+            row[14 + c] = flc0[j, c]
+            row[17 + c] = flc1[j, c]
+            row[20 + c] = flc2[j, c]
+        row[13] = math.hypot(free_ends[j, 0] - origins[j, 0], free_ends[j, 1] - origins[j, 1])
+        row[23] = scan[j]

@@ -182,16 +182,24 @@ def beam_moments(
     bearing_var_rad2: FloatArray | float,
     laser_in_base_xytheta: FloatArray | None = None,
     ut: UTParams = UTParams(),
+    cov_of_beam: NDArray[np.integer] | None = None,
 ) -> BeamMoments:
     """UT coefficients of M beams: bearings (M,) in the laser frame, base poses (M, 3) and their world-frame
-    covariances (M, 3, 3), range and bearing variances (scalars or (M,)), mounting (3,).
+    covariances (M, 3, 3; or (N, 3, 3) with ``cov_of_beam`` (M,), the covariance of each beam: the beams of
+    one scan share theirs, whose square root is then taken once), range and bearing variances (scalars or
+    (M,)), mounting (3,).
 
     The range only enters linearly (see the module docstring), so no range is needed: the point at distance
     ``d`` is ``rho(d) = a + d b`` with covariance ``C0 + d C1 + d^2 C2``."""
     b = np.asarray(bearings_rad, dtype=np.float64).reshape(-1)
     M = b.shape[0]
     pose = np.asarray(base_poses_xytheta, dtype=np.float64).reshape(M, 3)
-    pcov = np.broadcast_to(np.asarray(pose_cov_xytheta, dtype=np.float64), (M, 3, 3))
+    if cov_of_beam is None:
+        pcov = np.broadcast_to(np.asarray(pose_cov_xytheta, dtype=np.float64), (M, 3, 3))
+        which = np.arange(M, dtype=np.int64)
+    else:
+        pcov = np.asarray(pose_cov_xytheta, dtype=np.float64).reshape(-1, 3, 3)
+        which = np.asarray(cov_of_beam, dtype=np.int64).reshape(M)
     var_r = np.broadcast_to(np.asarray(range_var_m2, dtype=np.float64), (M,))
     var_b = np.broadcast_to(np.asarray(bearing_var_rad2, dtype=np.float64), (M,))
     m = np.zeros(3) if laser_in_base_xytheta is None else np.asarray(laser_in_base_xytheta, np.float64)
@@ -201,6 +209,7 @@ def beam_moments(
         b,
         np.ascontiguousarray(pose),
         np.ascontiguousarray(psd_sqrt(pcov)),
+        which,
         np.sqrt(np.maximum(var_r, 0.0)),
         np.sqrt(np.maximum(var_b, 0.0)),
         np.ascontiguousarray(m),
@@ -212,9 +221,28 @@ def beam_moments(
     return BeamMoments(*out)
 
 
+#: Beams per parallel task of :func:`_beam_moments` (its scratch is allocated once per task).
+_MOMENTS_CHUNK = 4096
+
+
+@nb.njit(cache=True, error_model="numpy", parallel=True)
+def _beam_moments(bearing, pose, pose_root, which, sd_r, sd_b, mount, c, wm, wc, a, bb, c0, c1, c2):
+    """The coefficients of :func:`beam_moments`, in parallel chunks of beams (``pose_root[which[i]]``: the
+    pose covariance's root of beam ``i``)."""
+    m = bearing.shape[0]
+    for chunk in nb.prange((m + _MOMENTS_CHUNK - 1) // _MOMENTS_CHUNK):
+        lo = chunk * _MOMENTS_CHUNK
+        _beam_moments_range(
+            lo, min(lo + _MOMENTS_CHUNK, m), bearing, pose, pose_root, which, sd_r, sd_b, mount, c, wm, wc,
+            a, bb, c0, c1, c2,
+        )  # fmt: skip
+
+
 @nb.njit(cache=True, error_model="numpy")
-def _beam_moments(bearing, pose, pose_root, sd_r, sd_b, mount, c, wm, wc, a, bb, c0, c1, c2):
-    """The coefficients of :func:`beam_moments`, one beam at a time: its 2n + 1 sigma points (eq. 24) of the
+def _beam_moments_range(
+    lo, hi, bearing, pose, pose_root, which, sd_r, sd_b, mount, c, wm, wc, a, bb, c0, c1, c2
+):
+    """The coefficients of beams ``lo:hi``, one beam at a time: its 2n + 1 sigma points (eq. 24) of the
     5-D state with r = 0 (the root of ``blockdiag(var_r, var_b, Sigma_pose)`` is ``blockdiag(sd_r, sd_b,
     pose_root)``), each point's image ``P_k`` at d = 0 and beam direction ``u_k`` (eq. 26; positions
     relative to the mean base position, so that large world coordinates do not cancel), then eqs. (27)-(28)
@@ -226,7 +254,7 @@ def _beam_moments(bearing, pose, pose_root, sd_r, sd_b, mount, c, wm, wc, a, bb,
     ux = np.empty(nk)
     uy = np.empty(nk)
     step = np.zeros(n)
-    for i in range(bearing.shape[0]):
+    for i in range(lo, hi):
         for k in range(nk):
             for j in range(n):
                 step[j] = 0.0
@@ -239,7 +267,7 @@ def _beam_moments(bearing, pose, pose_root, sd_r, sd_b, mount, c, wm, wc, a, bb,
                     step[1] = sign * sd_b[i]
                 else:
                     for r in range(3):
-                        step[2 + r] = sign * pose_root[i, r, j - 2]
+                        step[2 + r] = sign * pose_root[which[i], r, j - 2]
             dr = step[0]
             th = pose[i, 2] + step[4]
             ang = th + mount[2] + bearing[i] + step[1]

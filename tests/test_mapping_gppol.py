@@ -187,6 +187,34 @@ def test_exact_inputs_make_gppol_gpfol(intel) -> None:
     np.testing.assert_allclose(got.variance, ref.variance, atol=1e-9)
 
 
+def test_core_arrays_hold_each_inputs_moments(intel) -> None:
+    """The rows the compiled core reads: an endpoint's mean and covariances at its range, a beam's UT
+    coefficients and the length of its free part, exactly as the moments give them."""
+    rec, poses = intel
+    cfg = MappingConfig()
+    rows = np.arange(0, 400, 4)
+    beams = em.make_beams(rec, poses, rows, cfg)
+    cov = np.tile(np.diag([4e-4, 2.5e-4, 1e-5]), (len(rec.scans), 1, 1))
+    noise = [SensorNoise(1e-4, 3e-6)]
+    inputs = GaussianInputs(input_moments(beams, cov, noise), local_moments=input_moments(beams, None, noise))
+    hits = np.flatnonzero(beams.is_hit)[::-1].copy()
+    occ, seg = inputs.core_arrays(beams, hits)
+    mo, lo = inputs.moments, inputs.local()
+    d = beams.ranges_m[hits]
+    np.testing.assert_array_equal(occ[:, :2], mo.mean_at(d, hits))
+    np.testing.assert_array_equal(occ[:, 2:5], mo.packed_cov_at(d, hits))
+    np.testing.assert_array_equal(occ[:, 5:8], lo.packed_cov_at(d, hits))
+    np.testing.assert_array_equal(occ[:, 8], beams.scan_index[hits])
+    np.testing.assert_array_equal(seg[:, 0:2], mo.a)
+    np.testing.assert_array_equal(seg[:, 2:4], mo.b)
+    for k, f in enumerate(("c0", "c1", "c2")):
+        np.testing.assert_array_equal(seg[:, 4 + 3 * k : 7 + 3 * k], getattr(mo, f))
+        np.testing.assert_array_equal(seg[:, 14 + 3 * k : 17 + 3 * k], getattr(lo, f))
+    np.testing.assert_array_equal(seg[:, 13], np.hypot(*(beams.free_ends_xy_m - beams.origins_xy_m).T))
+    np.testing.assert_array_equal(seg[:, 23], beams.scan_index)
+    assert not np.array_equal(occ[:, 2:5], occ[:, 5:8])  # the pose covariance is in the full ones only
+
+
 def test_sigma_point_rule_moments() -> None:
     z, w = sigma_point_rule_2d()
     assert w.sum() == pytest.approx(1.0)

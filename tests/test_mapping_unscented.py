@@ -118,6 +118,22 @@ def test_free_point_moments_are_exact_in_the_distance_along_the_beam() -> None:
                 np.testing.assert_allclose(mom.cov_at(d, np.array([i]))[0], c, rtol=1e-10, atol=1e-13)
 
 
+def test_shared_scan_covariances_give_the_per_beam_coefficients_bit_for_bit() -> None:
+    """A covariance per scan with ``cov_of_beam`` (its root taken once) equals it repeated for each beam;
+    enough beams for several parallel chunks."""
+    rng = np.random.default_rng(5)
+    n_scans, m = 7, 9000
+    scan = np.sort(rng.integers(0, n_scans, m))
+    poses = np.c_[rng.uniform(-50, 50, (n_scans, 2)), rng.uniform(-3, 3, n_scans)][scan]
+    covs = np.stack([random_cov(rng, 3, 0.1) for _ in range(n_scans)])
+    covs[2] = 0.0  # an exact pose: a zero root
+    bearings = rng.uniform(-np.pi, np.pi, m)
+    shared = beam_moments(bearings, poses, covs, 1e-4, 3e-6, MOUNT, cov_of_beam=scan)
+    repeated = beam_moments(bearings, poses, covs[scan], 1e-4, 3e-6, MOUNT)
+    for f in ("a", "b", "c0", "c1", "c2"):
+        np.testing.assert_array_equal(getattr(shared, f), getattr(repeated, f))
+
+
 def test_exact_inputs_give_points_and_zero_covariance() -> None:
     bearings = np.array([0.1, -0.5])
     poses = np.array([[1.0, 2.0, 0.3], [-4.0, 0.5, -2.0]])
