@@ -145,6 +145,21 @@ def cell_centres(cells: NDArray[np.int64], xs_m: FloatArray, ys_m: FloatArray) -
     return out
 
 
+@nb.njit(cache=True, parallel=True)
+def _fill_layers(cells, prob_solved, mean_solved, var_solved, prior, probability, mean, variance):
+    """The float32 layers (h * w,) of a render: the prior (``prior``: probability, mean, variance) and the
+    solved values at ``cells``, in parallel (a big building's three layers of 15 M cells)."""
+    for i in nb.prange(probability.size):
+        probability[i] = prior[0]
+        mean[i] = prior[1]
+        variance[i] = prior[2]
+    for k in nb.prange(cells.size):
+        c = cells[k]
+        probability[c] = prob_solved[k]
+        mean[c] = mean_solved[k]
+        variance[c] = var_solved[k]
+
+
 class GPOccupancyMap:
     """GP map over ``beams`` with learnt ``params``; ``k_occ`` + ``k_free`` neighbours per query.
 
@@ -319,18 +334,15 @@ class GPOccupancyMap:
         cells = tile_order_where(near)
         pts = cell_centres(cells, xs, ys)
         p = self.params
-        probability = np.full(h * w, p.unseen_probability, dtype=np.float32)
-        mean = np.zeros(h * w, dtype=np.float32)
-        variance = np.full(h * w, p.prior_variance, dtype=np.float32)
         t1 = time.perf_counter()
-        if cells.size:
-            solved = self._solve(pts, False)
-            probability[cells], mean[cells], variance[cells] = (
-                solved.probability,
-                solved.mean,
-                solved.variance,
-            )
-        self._note_query(h * w, t1 - t0, int(cells.size), time.perf_counter() - t1)
+        solved = self._solve(pts, False) if cells.size else Prediction(np.zeros(0), np.zeros(0), np.zeros(0))
+        t2 = time.perf_counter()
+        probability, mean, variance = (np.empty(h * w, dtype=np.float32) for _ in range(3))
+        prior = np.array([p.unseen_probability, 0.0, p.prior_variance], dtype=np.float32)
+        layers = (probability, mean, variance)
+        _fill_layers(cells, solved.probability, solved.mean, solved.variance, prior, *layers)
+        # the layers' fill counts with the prior's part (the reach test and the cells it answers)
+        self._note_query(h * w, t1 - t0 + time.perf_counter() - t2, int(cells.size), t2 - t1)
         self.last_render_seconds = time.perf_counter() - t0
         return MapLayers(
             probability=probability.reshape(h, w),

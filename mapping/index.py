@@ -109,11 +109,30 @@ def build_point_index(points_xy_m: FloatArray, cell_m: float) -> GridIndex:
     ij[:, 0] = np.clip(ij[:, 0], 0, nx - 1)
     ij[:, 1] = np.clip(ij[:, 1], 0, ny - 1)
     cell = ij[:, 0] * ny + ij[:, 1]
-    order = np.argsort(cell, kind="stable").astype(np.int32)
-    counts = np.bincount(cell, minlength=nx * ny)
-    start = np.zeros(nx * ny + 1, np.int64)
-    np.cumsum(counts, out=start[1:])
-    return GridIndex(origin, cell_m, (nx, ny), start, order)
+    start, order = _by_cell(cell, nx * ny)
+    return GridIndex(origin, cell_m, (nx, ny), start, order.astype(np.int32))
+
+
+def _by_cell(cells: NDArray[np.int64], n_cells: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The (n_cells + 1,) start of each cell's entries and the (E,) entries ordered by cell, each cell's in
+    their order in ``cells`` (E,): ``np.argsort(cells, kind="stable")``, by counting (a big building's
+    index has millions of entries)."""
+    per_cell = np.bincount(cells, minlength=n_cells)
+    start = np.zeros(n_cells + 1, np.int64)
+    np.cumsum(per_cell, out=start[1:])
+    order = np.empty(cells.size, np.int64)
+    _place_by_cell(cells, start, order)
+    return start, order
+
+
+@nb.njit(cache=True, error_model="numpy")
+def _place_by_cell(cells, start, order):
+    """Counting sort's placing pass: entry ``e`` goes to the next free slot of its cell."""
+    nxt = start[:-1].copy()
+    for e in range(cells.size):
+        c = cells[e]
+        order[nxt[c]] = e
+        nxt[c] += 1
 
 
 @nb.njit(cache=True, error_model="numpy")
@@ -192,10 +211,7 @@ def build_segment_index(starts_xy_m: FloatArray, ends_xy_m: FloatArray, cell_m: 
         return GridIndex(origin, cell_m, (nx, ny), np.zeros(nx * ny + 1, np.int64), np.zeros(0, np.int32))
     counts, cells = _segment_cells(p0, p1, GridGeometry.of(origin[0], origin[1], cell_m, nx, ny))
     seg = np.repeat(np.arange(p0.shape[0], dtype=np.int32), counts)
-    order = np.argsort(cells, kind="stable")
-    per_cell = np.bincount(cells, minlength=nx * ny)
-    start = np.zeros(nx * ny + 1, np.int64)
-    np.cumsum(per_cell, out=start[1:])
+    start, order = _by_cell(cells, nx * ny)
     return GridIndex(origin, cell_m, (nx, ny), start, seg[order])
 
 

@@ -191,6 +191,19 @@ def test_segment_entry_copies_hold_each_segment_relative_to_its_entrys_cell() ->
     assert np.array_equal(copies[2:], rows[:, 2:].T.astype(np.float32))
 
 
+def test_index_entries_by_cell_keep_a_stable_sorts_order() -> None:
+    """The counting sort of the indexes gives numpy's stable argsort and each cell's start."""
+    from mapping.index import _by_cell
+
+    rng = np.random.default_rng(3)
+    for n_cells, n in ((1, 5), (50, 0), (50, 3000), (10_000, 200_000)):
+        cells = rng.integers(0, n_cells, n)
+        start, order = _by_cell(cells, n_cells)
+        np.testing.assert_array_equal(order, np.argsort(cells, kind="stable"))
+        np.testing.assert_array_equal(np.diff(start), np.bincount(cells, minlength=n_cells))
+        assert start[0] == 0 and start[-1] == n
+
+
 def test_render_equals_query_of_all_cell_centres() -> None:
     """Rendering (queries in tile order) gives each cell what a query of its centre alone gives."""
     beams = random_beams(6)
