@@ -37,6 +37,7 @@ default. Not captured by any scaling: the product ``var_r var_b`` of independent
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -205,22 +206,27 @@ def beam_moments(
     m = np.zeros(3) if laser_in_base_xytheta is None else np.asarray(laser_in_base_xytheta, np.float64)
     c, wm, wc = ut.weights(STATE_DIM)
     out = tuple(np.empty((M, k)) for k in (2, 2, 3, 3, 3))
-    _beam_moments(
-        b,
-        np.ascontiguousarray(pose),
-        np.ascontiguousarray(psd_sqrt(pcov)),
-        which,
-        np.sqrt(np.maximum(var_r, 0.0)),
-        np.sqrt(np.maximum(var_b, 0.0)),
-        np.ascontiguousarray(m),
-        c,
-        wm,
-        wc,
-        *out,
-    )
+    with _PARALLEL_LAUNCH:
+        _beam_moments(
+            b,
+            np.ascontiguousarray(pose),
+            np.ascontiguousarray(psd_sqrt(pcov)),
+            which,
+            np.sqrt(np.maximum(var_r, 0.0)),
+            np.sqrt(np.maximum(var_b, 0.0)),
+            np.ascontiguousarray(m),
+            c,
+            wm,
+            wc,
+            *out,
+        )
     return BeamMoments(*out)
 
 
+#: One thread at a time launches :func:`_beam_moments`'s parallel loop: a run computes its maps' placement
+#: layers in two threads, and numba's workqueue threading layer (its fallback without OpenMP or TBB) does
+#: not allow two launches at once.
+_PARALLEL_LAUNCH = threading.Lock()
 #: Beams per parallel task of :func:`_beam_moments` (its scratch is allocated once per task).
 _MOMENTS_CHUNK = 4096
 

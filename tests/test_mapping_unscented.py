@@ -3,6 +3,11 @@ and the exact linear / quadratic dependence on the distance along the beam."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -132,6 +137,33 @@ def test_shared_scan_covariances_give_the_per_beam_coefficients_bit_for_bit() ->
     repeated = beam_moments(bearings, poses, covs[scan], 1e-4, 3e-6, MOUNT)
     for f in ("a", "b", "c0", "c1", "c2"):
         np.testing.assert_array_equal(getattr(shared, f), getattr(repeated, f))
+
+
+_TWO_THREADS = """
+from concurrent.futures import ThreadPoolExecutor
+import numpy as np
+from mapping.unscented import beam_moments
+m = 100_000
+def work(seed):
+    rng = np.random.default_rng(seed)
+    for _ in range(5):
+        beam_moments(rng.uniform(-3, 3, m), np.zeros((m, 3)), np.eye(3) * 1e-4, 1e-4, 3e-6)
+with ThreadPoolExecutor(2) as pool:
+    list(pool.map(work, range(2)))
+print("done")
+"""
+
+
+def test_two_threads_computing_moments_at_once_work_on_numbas_workqueue_layer() -> None:
+    """A run computes its maps' placement layers in two threads. Numba's fallback threading layer aborts the
+    process when two threads launch a parallel loop at once; the moments take turns."""
+    env = {**os.environ, "NUMBA_THREADING_LAYER": "workqueue"}
+    root = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    done = subprocess.run(
+        [sys.executable, "-c", _TWO_THREADS], env=env, cwd=root, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0 and done.stdout.strip() == "done", done.stderr[-2000:]
 
 
 def test_exact_inputs_give_points_and_zero_covariance() -> None:
