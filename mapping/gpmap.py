@@ -287,7 +287,7 @@ class GPOccupancyMap:
     def _note_query(self, n: int, prior_s: float, n_solved: int, solved_s: float) -> None:
         """``last_query_stats``: the points of the last query, those solved and the seconds each part took
         (``prior_s``: the reach test and the prior's fill, which includes building the reach raster on the
-        first query)."""
+        first query; for :meth:`render`, filling the layers with the prior and the solved values)."""
         self.last_query_stats = {
             "points": n,
             "solved": n_solved,
@@ -341,7 +341,6 @@ class GPOccupancyMap:
         prior = np.array([p.unseen_probability, 0.0, p.prior_variance], dtype=np.float32)
         layers = (probability, mean, variance)
         _fill_layers(cells, solved.probability, solved.mean, solved.variance, prior, *layers)
-        # the layers' fill counts with the prior's part (the reach test and the cells it answers)
         self._note_query(h * w, t1 - t0 + time.perf_counter() - t2, int(cells.size), t2 - t1)
         self.last_render_seconds = time.perf_counter() - t0
         return MapLayers(
