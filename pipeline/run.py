@@ -148,13 +148,14 @@ def build_maps(
                 maps[name] = builder.tiled_map(
                     beams[name], params, bounds, config.scale.tile_cells, cov, renderer, layers=whole
                 )
+                layers[name] = whole  # the tiled map holds its own copy: no second one from layers()
             else:
                 maps[name] = builder.tiled_map(
                     beams[name], params, bounds, config.scale.tile_cells, cov, renderer
                 )
                 with progress.stage(f"map {name}", total=len(maps[name].grid)) as bar:
                     maps[name].render_all(on_tile=lambda _r, bar=bar: bar.advance())
-            layers[name] = maps[name].layers()
+                layers[name] = maps[name].layers()
     return layers, maps, params, bounds
 
 

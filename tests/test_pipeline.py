@@ -401,6 +401,36 @@ def test_run_summary_reports_the_cells_solved_and_those_beyond_reach(loop_run) -
         assert at_prior >= stats["prior"]
 
 
+def test_build_maps_returns_the_tiled_maps_layers_in_memory_of_their_own(loop_run) -> None:
+    """build_maps hands back each map's layers as its tiled map holds them, in arrays of their own (a later
+    update of a tiled map leaves them as they were), and the run's layers.npz are those layers."""
+    from pipeline.api import RunView
+    from pipeline.artifacts import read_mapper_covariances
+    from pipeline.progress import Progress
+    from pipeline.run import StageTimer, build_maps
+    from slam.trajectory_io import read_tum
+
+    view = RunView(loop_run, "after")
+    trajectories = {}
+    for name, tum in (("before", "odometry.tum"), ("after", "optimized.tum")):
+        _, poses = read_tum(loop_run / "trajectory" / tum)
+        _, cov = read_mapper_covariances(loop_run / "trajectory" / "covariances.npz", name, "relative")
+        trajectories[name] = (poses, cov)
+    scans = view.scans
+    layers, maps, _, _ = build_maps(
+        scans.scans, scans.laser_in_base_xytheta, trajectories, view.config, StageTimer(), Progress(),
+        params=view.params,
+    )  # fmt: skip
+    for name in ("before", "after"):
+        held, stored = maps[name].layers(), read_layers_npz(loop_run / "maps" / name / "layers.npz")
+        for field in ("probability", "mean", "variance"):
+            mine = getattr(layers[name], field)
+            np.testing.assert_array_equal(mine, getattr(held, field))
+            np.testing.assert_array_equal(mine, getattr(stored, field))
+            assert not np.shares_memory(mine, maps[name].sink.arrays[field])
+        assert layers[name].origin_xy_m == held.origin_xy_m and layers[name].resolution_m == held.resolution_m
+
+
 @pytest.mark.slow
 def test_remap_after_a_local_correction_recomputes_only_the_tiles_it_reaches(loop_run, tmp_path) -> None:
     """A loop-closure-like correction of part of the trajectory: the incremental remap (on a local Dask
