@@ -339,8 +339,9 @@ class GPOccupancyMap:
         t2 = time.perf_counter()
         probability, mean, variance = (np.empty(h * w, dtype=np.float32) for _ in range(3))
         prior = np.array([p.unseen_probability, 0.0, p.prior_variance], dtype=np.float32)
-        layers = (probability, mean, variance)
-        _fill_layers(cells, solved.probability, solved.mean, solved.variance, prior, *layers)
+        _fill_layers(
+            cells, solved.probability, solved.mean, solved.variance, prior, probability, mean, variance
+        )
         self._note_query(h * w, t1 - t0 + time.perf_counter() - t2, int(cells.size), t2 - t1)
         self.last_render_seconds = time.perf_counter() - t0
         return MapLayers(

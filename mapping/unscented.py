@@ -175,6 +175,14 @@ def pack_cov(cov: FloatArray) -> FloatArray:
     return np.stack([c[..., 0, 0], 0.5 * (c[..., 0, 1] + c[..., 1, 0]), c[..., 1, 1]], -1)
 
 
+#: One thread at a time launches :func:`_beam_moments`'s parallel loop: a run computes its maps' placement
+#: layers in two threads, and numba's workqueue threading layer (its fallback without OpenMP or TBB) does
+#: not allow two launches at once.
+_PARALLEL_LAUNCH = threading.Lock()
+#: Beams per parallel task of :func:`_beam_moments` (its scratch is allocated once per task).
+_MOMENTS_CHUNK = 4096
+
+
 def beam_moments(
     bearings_rad: FloatArray,
     base_poses_xytheta: FloatArray,
@@ -221,14 +229,6 @@ def beam_moments(
             *out,
         )
     return BeamMoments(*out)
-
-
-#: One thread at a time launches :func:`_beam_moments`'s parallel loop: a run computes its maps' placement
-#: layers in two threads, and numba's workqueue threading layer (its fallback without OpenMP or TBB) does
-#: not allow two launches at once.
-_PARALLEL_LAUNCH = threading.Lock()
-#: Beams per parallel task of :func:`_beam_moments` (its scratch is allocated once per task).
-_MOMENTS_CHUNK = 4096
 
 
 @nb.njit(cache=True, error_model="numpy", parallel=True)
