@@ -119,10 +119,17 @@ class MapBuilder:
             method = GIRARD if kernel.name == "se" else GAUSS_HERMITE
         return InputExpectation(method, self.cfg.gppol.gh_level)
 
-    def gaussian_inputs(self, beams: Beams, cov_xytheta: NDArray | None, kernel: Kernel) -> GaussianInputs:
+    def gaussian_inputs(
+        self,
+        beams: Beams,
+        cov_xytheta: NDArray | None,
+        kernel: Kernel,
+        rigid_groups: NDArray | None = None,
+    ) -> GaussianInputs:
         """The GPPOL inputs of ``beams``: the unscented transform of every beam under its scan's pose
         covariance and the per-source laser noise; the free points' inputs without range noise unless
-        ``gppol_free_range_noise``."""
+        ``gppol_free_range_noise``. ``rigid_groups`` (N,): the scans that share one pose error
+        (:class:`mapping.gppol.GaussianInputs`; None: each scan alone; unused without covariances)."""
         cfg = self.cfg
         ut = UTParams(cfg.gppol.ut.alpha, cfg.gppol.ut.beta, cfg.gppol.ut.kappa)
         noise = self.sensor_noise(beams.source_names)
@@ -138,7 +145,8 @@ class MapBuilder:
                     local_free = input_moments(beams, None, no_range, ut)
         except ValueError as exc:
             raise MappingError(f"cannot build the GPPOL inputs: {exc}") from None
-        return GaussianInputs(moments, self.input_expectation(kernel), free, local, local_free)
+        groups = None if cov_xytheta is None or rigid_groups is None else np.asarray(rigid_groups, np.int64)
+        return GaussianInputs(moments, self.input_expectation(kernel), free, local, local_free, groups)
 
     # -- parameters -------------------------------------------------------------------------------------
 
@@ -151,19 +159,26 @@ class MapBuilder:
         except ParamsFileError as exc:
             raise ConfigError(f"{self.cfg.params_file}: {exc}") from None
 
-    def fit(self, beams: Beams, cov_xytheta: NDArray | None = None, seed_offset: int = 0) -> GPParams:
+    def fit(
+        self,
+        beams: Beams,
+        cov_xytheta: NDArray | None = None,
+        seed_offset: int = 0,
+        rigid_groups: NDArray | None = None,
+    ) -> GPParams:
         """Stored parameters if configured, else hyperparameters and PLS link learnt from ``train.scans``
         scans of ``beams`` in ``train.windows`` runs spread over the recording: GPFOL with ``cfg.kernel``;
         GPPOL with ``cfg.gppol.kernel`` on the beams' input Gaussians of the laser noise (poses exact,
-        :meth:`_train`; ``cov_xytheta`` serves the held-out link's maps). The training problems' free segments
-        stop ``cfg.train.free_margin_m`` short of the endpoints if it is set (or each beam's grazing margin,
-        kept from ``beams``, if larger). ``pls_link: holdout`` refits the link on held-out scans."""
+        :meth:`_train`; ``cov_xytheta`` and ``rigid_groups`` serve the held-out link's maps). The training
+        problems' free segments stop ``cfg.train.free_margin_m`` short of the endpoints if it is set (or each
+        beam's grazing margin, kept from ``beams``, if larger). ``pls_link: holdout`` refits the link on
+        held-out scans."""
         stored = self.stored_params()
         if stored is not None:
             return stored
         params = self._train(beams, seed_offset)
         if self.cfg.pls.link == "holdout":
-            params = self._holdout_link(params, beams, cov_xytheta, seed_offset)
+            params = self._holdout_link(params, beams, cov_xytheta, seed_offset, rigid_groups)
         return params
 
     def _train(self, beams: Beams, seed_offset: int) -> GPParams:
@@ -210,7 +225,12 @@ class MapBuilder:
             raise MappingError(f"cannot train the GP: {exc}") from None
 
     def _holdout_link(
-        self, params: GPParams, beams: Beams, cov_xytheta: NDArray | None, seed_offset: int
+        self,
+        params: GPParams,
+        beams: Beams,
+        cov_xytheta: NDArray | None,
+        seed_offset: int,
+        rigid_groups: NDArray | None = None,
     ) -> GPParams:
         """``params`` with the PLS link refitted on held-out scans of ``beams``
         (:func:`mapping.calibration.holdout_link`); unchanged when too few scans (``params.info["pls"]`` says
@@ -218,7 +238,7 @@ class MapBuilder:
         cfg = self.cfg
 
         def build(rest: Beams) -> GPOccupancyMap:
-            return self.gp_map(rest, params, cov_xytheta)
+            return self.gp_map(rest, params, cov_xytheta, rigid_groups)
 
         fitted = holdout_link(
             beams, build, cfg.pls.holdout_fraction, cfg.pls.holdout_block_scans, cfg.train.seed + seed_offset
@@ -234,13 +254,21 @@ class MapBuilder:
 
     # -- maps -------------------------------------------------------------------------------------------
 
-    def gp_map(self, beams: Beams, params: GPParams, cov_xytheta: NDArray | None = None) -> GPOccupancyMap:
-        """The GP occupancy map over ``beams`` with ``params``: GPPOL on the beams' input Gaussians, GPFOL
-        on the beams as they are."""
+    def gp_map(
+        self,
+        beams: Beams,
+        params: GPParams,
+        cov_xytheta: NDArray | None = None,
+        rigid_groups: NDArray | None = None,
+    ) -> GPOccupancyMap:
+        """The GP occupancy map over ``beams`` with ``params``: GPPOL on the beams' input Gaussians (the
+        scans' pose covariances ``cov_xytheta`` (N, 3, 3), shared within ``rigid_groups`` (N,)), GPFOL on
+        the beams as they are."""
         if self.mapper == "gpfol" and "inputs" in params.info:
             raise MappingError("these GP parameters were learnt for GPPOL: learn them with mapper='gpfol'")
         cfg = self.cfg
-        inputs = self.gaussian_inputs(beams, cov_xytheta, params.kernel) if self.mapper == "gppol" else None
+        gppol = self.mapper == "gppol"
+        inputs = self.gaussian_inputs(beams, cov_xytheta, params.kernel, rigid_groups) if gppol else None
         try:
             return GPOccupancyMap(
                 beams, params, cfg.k_occupied, cfg.k_free, cfg.jitter, cfg.index_cell_m, inputs=inputs
@@ -261,10 +289,12 @@ class MapBuilder:
         cov_xytheta: NDArray | None = None,
         renderer: TileRenderer = render_serial,
         layers: MapLayers | None = None,
+        rigid_groups: NDArray | None = None,
     ) -> IncrementalMap:
         """The tiled map of ``beams`` on the grid of ``bounds_xy_m`` at ``cfg.resolution_m`` (tiles of
         ``tile_cells`` cells a side), rendered tile by tile by ``renderer`` and updatable when poses change.
-        Covariances are kept only for GPPOL (GPFOL ignores them, so their changes re-render nothing).
+        Covariances are kept only for GPPOL (GPFOL ignores them, so their changes re-render nothing), with
+        the scans' ``rigid_groups`` (:meth:`gp_map`).
         ``layers``: a rendering of these beams made earlier with the same settings, adopted instead of
         rendering (call :meth:`IncrementalMap.render_all` otherwise)."""
         grid = TileGrid.from_bounds(bounds_xy_m, self.cfg.resolution_m, tile_cells)
@@ -273,7 +303,9 @@ class MapBuilder:
         gp = IncrementalMap(
             beams,
             grid,
-            GPMapFactory(self, params),
+            GPMapFactory(
+                self, params, None if cov is None or rigid_groups is None else np.asarray(rigid_groups)
+            ),
             self.cfg.k_occupied,
             self.cfg.k_free,
             cov,
@@ -288,10 +320,12 @@ class MapBuilder:
 @dataclass(frozen=True)
 class GPMapFactory:
     """The map factory of a tile (:data:`mapping.tiling.render.MapFactory`): ``builder``'s GP map with the
-    learnt ``params`` over the tile's support beams. Picklable, so that Dask ships it to its workers."""
+    learnt ``params`` over the tile's support beams (and the scans' ``rigid_groups``,
+    :meth:`MapBuilder.gp_map`). Picklable, so that Dask ships it to its workers."""
 
     builder: MapBuilder
     params: GPParams
+    rigid_groups: NDArray | None = None
 
     def __call__(self, beams: Beams, cov_xytheta: NDArray | None) -> Any:
-        return self.builder.gp_map(beams, self.params, cov_xytheta)
+        return self.builder.gp_map(beams, self.params, cov_xytheta, self.rigid_groups)

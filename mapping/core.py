@@ -365,13 +365,13 @@ INPUTS_GH_NODES = 3  # GPPOL, NN kernel, Gauss-Hermite nodes of both inputs (eq.
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, SLo, G, y):
     """GPPOL training inputs centred on the query: means X (n, 2), packed covariances S (n, 3), packed
-    covariances of the laser noise alone SLo (n, 3) and scan indices G (n,).
+    covariances of the laser noise alone SLo (n, 3) and rigid groups G (n,).
 
     ``occ_mom`` (H, 9): mean, covariance, laser-noise covariance and scan of each endpoint (cell order of
     the point index); ``seg_mom`` (M, 24): per beam ``a, b, C0, C1, C2`` of
     :class:`mapping.unscented.BeamMoments`, the length L of its free part, the laser noise's ``C0, C1, C2``
-    and the scan, so that the free point at t along the segment is at d = t L: ``rho = a + d b``,
-    ``Sigma = C0 + d C1 + d^2 C2`` (exact UT, Algorithm 3 steps 5-8)."""
+    and the scan's rigid group, so that the free point at t along the segment is at d = t L:
+    ``rho = a + d b``, ``Sigma = C0 + d C1 + d^2 C2`` (exact UT, Algorithm 3 steps 5-8)."""
     for i in range(no):
         j = ido[i]
         X[i, 0] = occ_mom[j, 0] - qx
@@ -403,7 +403,8 @@ def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, SLo, 
 @nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True, inline="always")
 def _pair_cov(SL, SLo, GL, i, j, lane, c):
     """Entry ``c`` of the packed covariance of ``x_i - x_j``: ``Sigma_i + Sigma_j`` for inputs of different
-    scans, the laser noise's alone for two of one scan (a rigid motion keeps their distance)."""
+    groups, the laser noise's alone for two of one rigid group (a scan, or the scans of one keyframe: a
+    rigid motion keeps their distance, :class:`mapping.gppol.GaussianInputs`)."""
     one_scan = SLo[i, c, lane] + SLo[j, c, lane]
     two_scans = SL[i, c, lane] + SL[j, c, lane]
     return one_scan if GL[i, lane] == GL[j, lane] else two_scans  # a select, not a branch: vectorised
@@ -560,8 +561,9 @@ def _gh_nodes_lanes(kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN):
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
 def _noisy_kernel_lanes(mode, kid, kp, XL, SL, SLo, GL, mask, n, K, ks, gz, gw, PH, SN):
     """The GPPOL kernel blocks of ``mode`` (INPUTS_GIRARD, INPUTS_GH_DIFFERENCE or INPUTS_GH_NODES). The
-    stationary modes treat two inputs of one scan (same GL) as sharing its pose error (:func:`_pair_cov`);
-    the NN kernel, not invariant to a rigid motion, integrates every pair over both full covariances."""
+    stationary modes treat two inputs of one rigid group (same GL) as sharing its pose error
+    (:func:`_pair_cov`); the NN kernel, not invariant to a rigid motion, integrates every pair over both
+    full covariances."""
     if mode == INPUTS_GIRARD:
         _girard_lanes(kp, XL, SL, SLo, GL, mask, n, K, ks)
     elif mode == INPUTS_GH_DIFFERENCE:

@@ -83,13 +83,16 @@ class GaussianInputs:
     of one scan share its pose error (SPEC section 5): a rigid motion keeps the distance between two of
     its points, so for a stationary isotropic kernel their expected kernel is the one over the laser noise
     alone; two points of different scans, whose pose errors are taken as independent, integrate over both
-    full covariances (eq. 17); the test point is deterministic."""
+    full covariances (eq. 17); the test point is deterministic. ``rigid_groups`` (N,) widens "one scan" to
+    a group of scans that share one pose error, indexed like the covariances by ``beams.scan_index`` (in a
+    pose graph the scans of one keyframe: they move with it rigidly); None: each scan is its own group."""
 
     moments: BeamMoments
     expectation: InputExpectation = DEFAULT_EXPECTATION
     free_moments: BeamMoments | None = None  # free points' coefficients if they differ (no range noise)
     local_moments: BeamMoments | None = None  # the laser noise alone (same-scan pairs)
     local_free_moments: BeamMoments | None = None
+    rigid_groups: NDArray[np.int64] | None = None
 
     def free(self) -> BeamMoments:
         """The coefficients of the free points (default: those of the endpoints, as Algorithm 3)."""
@@ -120,13 +123,21 @@ class GaussianInputs:
     def core_arrays(self, beams: Beams, hit_beam: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
         """``occ_mom`` (H, 9): mean, packed covariance, packed covariance of the laser noise alone and scan
         index of the endpoints ``hit_beam`` (in the point index's order); ``seg_mom`` (M, 24): per beam
-        ``a, b, C0, C1, C2``, the length of its free part, the laser noise's ``C0, C1, C2`` and the scan
-        index (:func:`mapping.core._gaussian_inputs`)."""
+        ``a, b, C0, C1, C2``, the length of its free part, the laser noise's ``C0, C1, C2`` and the scan's
+        rigid group (:func:`mapping.core._gaussian_inputs`)."""
         mo, lo = self.moments, self.local()
         fm, fl = self.free(), self.local_free()
         hits = np.ascontiguousarray(hit_beam, dtype=np.int64)
         occ = np.empty((hits.size, 9))
         seg = np.empty((len(beams), 24))
+        group = beams.scan_index
+        if self.rigid_groups is not None:
+            groups = np.asarray(self.rigid_groups, dtype=np.int64)
+            if len(beams) and int(beams.scan_index.max()) >= groups.size:
+                raise ValueError(
+                    f"{groups.size} rigid groups, but beams of scan {int(beams.scan_index.max())}"
+                )
+            group = groups[beams.scan_index]
         # one pass over the rows, in parallel: column by column, a 24-column array is walked 24 times
         _pack_inputs(
             *(np.ascontiguousarray(m.a) for m in (mo, fm)),
@@ -135,7 +146,7 @@ class GaussianInputs:
             np.ascontiguousarray(beams.ranges_m, dtype=np.float64),
             np.ascontiguousarray(beams.origins_xy_m, dtype=np.float64),
             np.ascontiguousarray(beams.free_ends_xy_m, dtype=np.float64),
-            np.ascontiguousarray(beams.scan_index),
+            np.ascontiguousarray(group),
             hits,
             occ,
             seg,
@@ -150,8 +161,9 @@ def _pack_inputs(
 ):  # fmt: skip
     """The rows of :meth:`GaussianInputs.core_arrays`: ``occ`` (H, 9) of the endpoints ``hits`` (the mean
     ``a + d b`` and the packed covariances ``C0 + d (C1 + d C2)`` at their ranges, full and of the laser
-    noise alone, and the scan), ``seg`` (M, 24) of every beam (the free points' ``a, b, C0, C1, C2``, the
-    free part's length, the laser noise's ``C0, C1, C2``, the scan)."""
+    noise alone, and the scan's rigid group), ``seg`` (M, 24) of every beam (the free points'
+    ``a, b, C0, C1, C2``, the free part's length, the laser noise's ``C0, C1, C2``, the scan's rigid
+    group)."""
     for h in nb.prange(hits.shape[0]):
         j = hits[h]
         d = ranges[j]

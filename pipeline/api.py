@@ -34,6 +34,7 @@ from pipeline.artifacts import (
     StoredScans,
     covariances_at,
     read_mapper_covariances,
+    read_rigid_groups,
     read_scan_covariances,
     read_scans,
 )
@@ -192,6 +193,13 @@ class RunView:
             return covariances_at(stamps, cov_stamps, values)
 
     @cached_property
+    def rigid_groups(self) -> NDArray[np.int64] | None:
+        """(N,) the keyframe of every scan: the scans GPPOL treats as sharing one pose error
+        (:func:`pipeline.artifacts.mapper_rigid_groups`; None when the covariance file names no keyframes)."""
+        path = self.run_dir / TRAJECTORY_DIR / COVARIANCES_NPZ
+        return read_rigid_groups(path, len(self.scans.scans.stamps_ns))
+
+    @cached_property
     def params(self) -> GPParams:
         """The GP parameters the run learnt (``maps/params.json``): kernel, noise and PLS link."""
         path = params_path(self.run_dir / "maps")
@@ -216,7 +224,7 @@ class RunView:
         with stage_boundary("mapping", self.run_dir):
             selected = builder.select_scans(traj.poses_before_xytheta, laser)
             beams = builder.beams(self.scans.scans, poses, laser, selected)
-            return builder.gp_map(beams, params, cov)
+            return builder.gp_map(beams, params, cov, self.rigid_groups)
 
     def query(self, xy_m: ArrayLike) -> MapQuery:
         """The map at (P, 2) world-frame points (m): mean, variance and p(occ), each (P,) float64."""

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from datasets.files import atomic_output
 from datasets.types import ScanSequence
 from pipeline.errors import PipelineError
+from slam.keyframes import keyframe_of_scan
 from slam.result import SlamResult
 from slam.trajectory_io import TrajectoryFormatError, write_g2o, write_tum
 
@@ -140,6 +141,26 @@ def mapper_covariances(slam: SlamResult, which: str, mode: str) -> NDArray[np.fl
     if mode == "world":
         return getattr(slam, f"cov_{which}_xytheta")
     raise ValueError(f"pose covariances must be one of {POSE_COVARIANCES}, not {mode!r}")
+
+
+def mapper_rigid_groups(slam: SlamResult) -> NDArray[np.int64]:
+    """(N,) the keyframe of every scan: GPPOL's rigid groups (:class:`mapping.gppol.GaussianInputs`). The
+    pose graph moves the scans between two keyframes rigidly with the first (their offsets are the
+    odometry's), so they share its pose error: two points of one keyframe are placed relative to each other
+    up to the laser noise, not up to two independent pose errors."""
+    return keyframe_of_scan(np.asarray(slam.keyframe_scans, dtype=np.int64), len(slam.stamps_ns))
+
+
+def read_rigid_groups(path: Path, n_scans: int) -> NDArray[np.int64] | None:
+    """:func:`mapper_rigid_groups` of the ``n_scans`` scans of a run's ``covariances.npz``; None (each scan
+    its own group) when the file names no keyframes of these scans (another tool's file)."""
+    try:
+        keyframes = read_keyframe_indices(path)
+    except TrajectoryFormatError:
+        return None
+    if keyframes.max() >= n_scans or np.any(np.diff(keyframes) <= 0):
+        return None
+    return keyframe_of_scan(keyframes, n_scans)
 
 
 def read_mapper_covariances(path: Path, which: str, mode: str) -> tuple[NDArray[np.int64], NDArray] | None:

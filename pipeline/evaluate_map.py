@@ -56,7 +56,7 @@ from mapping.evaluation import (
     observed_points,
 )
 from mapping.metrics import log_loss, roc_auc
-from pipeline.artifacts import mapper_covariances
+from pipeline.artifacts import mapper_covariances, mapper_rigid_groups
 from pipeline.config import load_config
 from pipeline.errors import PipelineError
 from pipeline.map_bounds import parse_numbers
@@ -94,28 +94,30 @@ def mapping_poses(
     slam_config: Any = None,
     progress: Progress | None = None,
     pose_covariances: str = "relative",
-) -> tuple[np.ndarray, str, np.ndarray | None]:
-    """(N, 3) base poses to map with, where they come from, and their (N, 3, 3) world-frame covariances:
-    the reference poses when the recording has them (``"reference"``, taken as exact: None), else the
-    optimised trajectory of the SLAM stage and the covariances ``pose_covariances`` names
+) -> tuple[np.ndarray, str, np.ndarray | None, np.ndarray | None]:
+    """(N, 3) base poses to map with, where they come from, their (N, 3, 3) world-frame covariances and
+    (N,) rigid groups: the reference poses when the recording has them (``"reference"``, taken as exact:
+    None, None), else the optimised trajectory of the SLAM stage, the covariances ``pose_covariances`` names
     (``mapping.gppol.pose_covariances``, :func:`pipeline.artifacts.mapper_covariances`; ``"slam"``, SPEC
-    section 6)."""
+    section 6) and its keyframes (:func:`pipeline.artifacts.mapper_rigid_groups`)."""
     if rec.scans is None or len(rec.scans) == 0:
         raise DatasetError(f"{input_path}: no laser scans to map")
     if rec.reference is not None:
-        return reference_base_poses(rec, input_path), "reference", None
+        return reference_base_poses(rec, input_path), "reference", None, None
     from slam.system import run_slam_recording
 
     result = run_slam_recording(rec, slam_config, progress)
     cov = mapper_covariances(result, "after", pose_covariances)
-    return np.asarray(result.poses_after_xytheta), "slam", None if cov is None else np.asarray(cov)
+    if cov is None:
+        return np.asarray(result.poses_after_xytheta), "slam", None, None
+    return np.asarray(result.poses_after_xytheta), "slam", np.asarray(cov), mapper_rigid_groups(result)
 
 
 def mapping_laser_poses(
     rec: Recording, input_path: Path, slam_config: Any = None, progress: Progress | None = None
 ) -> tuple[np.ndarray, str]:
     """(N, 3) laser poses of :func:`mapping_poses` and where they come from."""
-    base, source, _ = mapping_poses(rec, input_path, slam_config, progress)
+    base, source, _, _ = mapping_poses(rec, input_path, slam_config, progress)
     return compose_laser_poses(base, rec.laser_in_base_xytheta), source
 
 
@@ -198,8 +200,10 @@ def _map_and_score(
     sort: bool,
     observed: np.ndarray | None = None,
     breakdown: dict[str, np.ndarray] | None = None,
+    rigid_groups: np.ndarray | None = None,
 ) -> dict[str, Any]:
-    """Train and query GPPOL and GPFOL, build the grid, score the three; times and parameters. With
+    """Train and query GPPOL and GPFOL (``cov``, ``rigid_groups``: :meth:`mapping.build.MapBuilder.gp_map`),
+    build the grid, score the three; times and parameters. With
     ``observed`` (P,) bool (:func:`observed_split`), also each AUC over the test points in observed and in
     unobserved cells (:func:`_split_aucs`), after the other keys; with ``breakdown``
     (:func:`breakdown_values`), each AUC by bins of it (:func:`_binned_aucs`)."""
@@ -209,9 +213,9 @@ def _map_and_score(
     for mapper in MAPPERS:
         builder = MapBuilder.from_config(cfg, mapper)
         t0 = time.perf_counter()
-        params = builder.fit(beams, cov, seed_offset)
+        params = builder.fit(beams, cov, seed_offset, rigid_groups)
         t1 = time.perf_counter()
-        gp = builder.gp_map(beams, params, cov)
+        gp = builder.gp_map(beams, params, cov, rigid_groups)
         p = gp.query(points, sort=sort).probability
         t2 = time.perf_counter()
         row[f"auc_{mapper}"] = roc_auc(p, labels)
@@ -297,6 +301,7 @@ def evaluate_holdout(
     block_scans: int | None = None,
     mappable: np.ndarray | None = None,
     breakdown: bool = False,
+    rigid_groups: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """The hold-out protocol of SPEC section 6 for GPPOL, GPFOL and the grid, one entry per seed.
 
@@ -307,8 +312,9 @@ def evaluate_holdout(
     ``block_scans``: scans per held-out block (default :func:`holdout_block_scans`: 40, 10 under 400
     scans). ``mappable`` (N,) bool: the scans that may be mapped (default all; e.g. those with a SLAM pose),
     the held-out ones never are. ``breakdown``: each AUC also by the test points' distance from their laser
-    and by the mapped endpoints near them (:func:`breakdown_values`). Returns ``per_seed`` and
-    ``block_scans``."""
+    and by the mapped endpoints near them (:func:`breakdown_values`). ``rigid_groups`` (N,): the scans that
+    share one pose error under ``cov`` (:meth:`mapping.build.MapBuilder.gp_map`; not with
+    ``perturb_poses``, whose errors are drawn per scan). Returns ``per_seed`` and ``block_scans``."""
     scans = rec.scans
     n = len(scans)
     block = block_scans if block_scans is not None else holdout_block_scans(n)
@@ -333,9 +339,10 @@ def evaluate_holdout(
             pts, labels, ranges_m = holdout_test_points(
                 scans.ranges_m, scans.angles_rad, truth_laser, held.tolist(), seed, carmen, with_ranges=True
             )
-            poses, seed_cov = base_poses, cov
+            poses, seed_cov, groups = base_poses, cov, rigid_groups
             if perturb_poses is not None:
                 poses, seed_cov = perturb(base_poses, *perturb_poses, seed)
+                groups = None
             beams = make_beams(rec, poses, train, cfg)
             row = {
                 "seed": seed,
@@ -346,7 +353,9 @@ def evaluate_holdout(
             }
             observed, split = observed_split(beams, pts, cfg.resolution_m)
             binned = breakdown_values(beams, pts, ranges_m) if breakdown else None
-            row.update(_map_and_score(beams, seed_cov, cfg, pts, labels, seed, None, True, observed, binned))
+            row.update(
+                _map_and_score(beams, seed_cov, cfg, pts, labels, seed, None, True, observed, binned, groups)
+            )
             row.update(split)
             per_seed.append(row)
             bar.advance()
@@ -375,10 +384,11 @@ def evaluate_ground_truth(
     cov: np.ndarray | None = None,
     perturb_poses: tuple[float, float] | None = None,
     every: int = 1,
+    rigid_groups: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Score the cells of the ground-truth raster ``gt`` (read from ``gt_path``; SPEC section 6, simulated
     worlds; ``every`` > 1 scores every ``every``-th row and column only, for quick checks).
-    Laser noise from the ground truth."""
+    Laser noise from the ground truth; ``cov`` and ``rigid_groups`` as :func:`evaluate_holdout`."""
     cfg = ground_truth_noise(cfg, gt)
     occ = np.asarray(gt.occupancy).astype(bool)
     bounds = gt.bounds_xy_m
@@ -387,11 +397,14 @@ def evaluate_ground_truth(
     poses = base_poses
     if perturb_poses is not None:
         poses, cov = perturb(base_poses, *perturb_poses, 0)
+        rigid_groups = None
     with progress.stage("evaluate map", total=1) as bar:
         beams = make_beams(rec, poses, np.arange(len(rec.scans)), cfg)
         row = {"seed": None, "test_points": int(labels.size), "occupied_test_points": int(labels.sum())}
         observed, split = observed_split(beams, centres, float(gt.resolution_m), gt.origin_xy_m)
-        row.update(_map_and_score(beams, cov, cfg, centres, labels, 0, bounds, False, observed))
+        row.update(
+            _map_and_score(beams, cov, cfg, centres, labels, 0, bounds, False, observed, None, rigid_groups)
+        )
         row.update(split)
         bar.advance()
     noise = {name: s.model_dump() for name, s in cfg.sources.items()}
@@ -464,18 +477,28 @@ def evaluate_map(
     config = load_config(config_path, {"input": {"scan_topic": scan_topic}})
     cfg = config.mapping
     rec = open_dataset(input_path, config.input)
-    base_poses, pose_source, cov = mapping_poses(
+    base_poses, pose_source, cov, groups = mapping_poses(
         rec, input_path, config.slam, progress, cfg.gppol.pose_covariances
     )
     if gt is not None:
         protocol = "ground_truth"
         used_seeds: list[int] = []
-        out = evaluate_ground_truth(rec, base_poses, gt, gt_path, cfg, progress, cov, perturb_poses)
+        out = evaluate_ground_truth(
+            rec, base_poses, gt, gt_path, cfg, progress, cov, perturb_poses, rigid_groups=groups
+        )
     else:
         protocol = "holdout"
         used_seeds = list(seeds) if seeds else list(DEFAULT_SEEDS)
         out = evaluate_holdout(
-            rec, base_poses, used_seeds, cfg, progress, cov, perturb_poses, breakdown=breakdown
+            rec,
+            base_poses,
+            used_seeds,
+            cfg,
+            progress,
+            cov,
+            perturb_poses,
+            breakdown=breakdown,
+            rigid_groups=groups,
         )
     rows = out["per_seed"]
     auc = {k: float(np.mean([r[f"auc_{k}"] for r in rows])) for k in ("gppol", "gpfol", "grid")}

@@ -60,7 +60,7 @@ from datasets.registry import guess_format, open_dataset
 from datasets.types import Recording
 from mapping.config import MappingConfig
 from mapping.evaluation import HOLDOUT_BLOCK, holdout_block_scans
-from pipeline.artifacts import mapper_covariances
+from pipeline.artifacts import mapper_covariances, mapper_rigid_groups
 from pipeline.config import Config, load_config
 from pipeline.errors import PipelineError
 from pipeline.evaluate_map import (
@@ -282,6 +282,17 @@ def slam_poses_on_reference(
     return base, cov, align, matched
 
 
+def rigid_groups_on_reference(
+    n_scans: int, rows: NDArray[np.int64], slam_rigid_groups: NDArray[np.int64]
+) -> NDArray[np.int64]:
+    """(N,) rigid groups of the reference's ``n_scans`` scans: row ``rows[i]`` takes the (M,)
+    ``slam_rigid_groups[i]`` of our scan matched to it; a row without one, a group of its own."""
+    ours = np.asarray(slam_rigid_groups, dtype=np.int64)
+    groups = np.arange(n_scans, dtype=np.int64) + (int(ours.max()) + 1 if ours.size else 0)
+    groups[np.asarray(rows, dtype=np.int64)] = ours
+    return groups
+
+
 def evaluate_slam_poses(
     ref: Recording,
     reference_path: str | Path,
@@ -294,6 +305,7 @@ def evaluate_slam_poses(
     progress: Progress,
     block_scans: int | None = None,
     test_points_from: Literal["reference", "slam"] = "reference",
+    slam_rigid_groups: NDArray[np.int64] | None = None,
 ) -> dict[str, Any]:
     """The hold-out protocol on our SLAM's poses (SPEC section 6, "Maps from our own SLAM"): the training
     scans mapped at our aligned poses (:func:`slam_poses_on_reference`; GPPOL with our rotated marginals;
@@ -304,7 +316,10 @@ def evaluate_slam_poses(
     ``test_points_from="slam"``: the test points from OUR poses of the held-out scans instead (a held-out
     scan without a SLAM pose keeps its reference pose): the map's agreement with scans it was not built
     from, both placed by our SLAM -- the protocol the reference-pose map is scored by, so the two compare
-    the trajectories' consistency without taking either as the truth."""
+    the trajectories' consistency without taking either as the truth.
+
+    ``slam_rigid_groups`` (M,): the rigid group of each of our poses (:meth:`mapping.build.MapBuilder.gp_map`;
+    None: each scan alone)."""
     if test_points_from not in ("reference", "slam"):
         raise ValueError(f"test_points_from must be 'reference' or 'slam', got {test_points_from!r}")
     base, cov, align, matched = slam_poses_on_reference(
@@ -312,8 +327,20 @@ def evaluate_slam_poses(
     )
     truth = reference_base_poses(ref, Path(reference_path))
     test = truth if test_points_from == "reference" else np.where(matched[:, None], base, truth)
+    groups = None
+    if cov is not None and slam_rigid_groups is not None:
+        groups = rigid_groups_on_reference(len(ref.scans), rows, slam_rigid_groups)
     out = evaluate_holdout(
-        ref, base, seeds, cfg, progress, cov, test_base_poses=test, block_scans=block_scans, mappable=matched
+        ref,
+        base,
+        seeds,
+        cfg,
+        progress,
+        cov,
+        test_base_poses=test,
+        block_scans=block_scans,
+        mappable=matched,
+        rigid_groups=groups,
     )
     out["alignment_xytheta"] = align.tolist()
     out["unmatched_reference_scans"] = int(np.sum(~matched))
@@ -543,6 +570,7 @@ def _evaluate(
     truth = reference_base_poses(ref, Path(reference_path))
     ours = np.asarray(result.poses_after_xytheta)[scans]
     our_cov = None if slam_cov is None else np.asarray(slam_cov)[scans]
+    our_groups = None if slam_cov is None else mapper_rigid_groups(result)[scans]
     maps: dict[str, Any] = {"reference_poses": None, "slam_poses": None, "slam_poses_own_test_points": None}
     row["maps"] = maps
     if gt is not None:
@@ -556,7 +584,8 @@ def _evaluate(
         )
         if not np.all(matched):
             raise PipelineError(f"{ref.source}: {int(np.sum(~matched))} scans have no SLAM pose to map")
-        by_slam = evaluate_ground_truth(ref, base, gt, gt_path, cfg, progress, cov=cov)
+        groups = None if cov is None else rigid_groups_on_reference(len(ref.scans), rows, our_groups)
+        by_slam = evaluate_ground_truth(ref, base, gt, gt_path, cfg, progress, cov=cov, rigid_groups=groups)
         by_slam["alignment_xytheta"] = align.tolist()
         maps["slam_poses"] = _map_result(by_slam, "ground_truth", [], "slam", pose_cov)
         timings["maps_slam_s"] = time.perf_counter() - t0
@@ -576,7 +605,17 @@ def _evaluate(
     timings["maps_reference_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     by_slam = evaluate_slam_poses(
-        ref, reference_path, rows, ours, our_cov, rec.laser_in_base_xytheta, seeds, cfg, progress, block
+        ref,
+        reference_path,
+        rows,
+        ours,
+        our_cov,
+        rec.laser_in_base_xytheta,
+        seeds,
+        cfg,
+        progress,
+        block,
+        slam_rigid_groups=our_groups,
     )
     maps["slam_poses"] = _map_result(by_slam, "holdout", seeds, "slam", pose_cov)
     timings["maps_slam_s"] = time.perf_counter() - t0
@@ -593,6 +632,7 @@ def _evaluate(
         progress,
         block,
         "slam",
+        our_groups,
     )
     maps["slam_poses_own_test_points"] = _map_result(by_self, "holdout", seeds, "slam", pose_cov)
     timings["maps_slam_own_s"] = time.perf_counter() - t0
@@ -623,7 +663,8 @@ def _own_maps_only(
     t0 = time.perf_counter()
     ours = np.asarray(result.poses_after_xytheta)
     cov = None if slam_cov is None else np.asarray(slam_cov)
-    by_self = evaluate_holdout(rec, ours, seeds, cfg, progress, cov, block_scans=block)
+    groups = None if cov is None else mapper_rigid_groups(result)
+    by_self = evaluate_holdout(rec, ours, seeds, cfg, progress, cov, block_scans=block, rigid_groups=groups)
     mode = cfg.gppol.pose_covariances
     pose_cov = f"SLAM {mode} covariances" if cov is not None else "none (laser noise only)"
     maps["slam_poses_own_test_points"] = _map_result(by_self, "holdout", seeds, "slam", pose_cov)

@@ -47,6 +47,7 @@ from pipeline.artifacts import (
     covariances_at,
     read_keyframe_indices,
     read_mapper_covariances,
+    read_rigid_groups,
     read_scan_covariances,
     read_scans,
 )
@@ -192,6 +193,8 @@ def remap_run(
         cov_file = Path(covariances) if covariances is not None else traj_dir / COVARIANCES_NPZ
         mode = cfg.gppol.pose_covariances
         new_cov = run_cov = None
+        # the scans GPPOL treats as sharing one pose error: the keyframes of the covariances' run
+        new_groups = run_groups = None
         world_cov = None  # the placement layer's (mapping.placement): none without a covariance file
         if mode != "none" or cov_file.is_file():
             world_stamps, world_cov = read_scan_covariances(cov_file, "after")
@@ -200,6 +203,8 @@ def remap_run(
             cov_stamps, cov = read_mapper_covariances(cov_file, "after", mode)
             new_cov = covariances_at(scans.stamps_ns, cov_stamps, cov)
             _, run_cov = read_mapper_covariances(traj_dir / COVARIANCES_NPZ, "after", mode)
+            new_groups = read_rigid_groups(cov_file, len(scans))
+            run_groups = read_rigid_groups(traj_dir / COVARIANCES_NPZ, len(scans))
         try:
             params = GPParams.load(params_path(run_dir / "maps"))
         except (OSError, ParamsFileError) as exc:
@@ -211,6 +216,8 @@ def remap_run(
         and tuple(map_bounds) == run_bounds
         and cfg == run_config.mapping
         and config.scale.tile_cells == run_config.scale.tile_cells
+        and (new_groups is None) == (run_groups is None)
+        and (new_groups is None or np.array_equal(new_groups, run_groups))
     )
     laser = stored.laser_in_base_xytheta
     builder = MapBuilder.from_config(cfg)
@@ -229,7 +236,14 @@ def remap_run(
                 run_layers = read_layers_npz(run_dir / "maps" / "after" / "layers.npz")
                 run_beams = builder.beams(scans, run_poses, laser, selected)
                 gp = builder.tiled_map(
-                    run_beams, params, map_bounds, sc.tile_cells, run_cov, renderer, layers=run_layers
+                    run_beams,
+                    params,
+                    map_bounds,
+                    sc.tile_cells,
+                    run_cov,
+                    renderer,
+                    layers=run_layers,
+                    rigid_groups=run_groups,
                 )
                 with progress.stage("remap tiles", total=None) as bar:
                     report = gp.update_poses(
@@ -240,7 +254,9 @@ def remap_run(
                         on_tile=lambda _r: bar.advance(),
                     )
             else:
-                gp = builder.tiled_map(new_beams, params, map_bounds, sc.tile_cells, new_cov, renderer)
+                gp = builder.tiled_map(
+                    new_beams, params, map_bounds, sc.tile_cells, new_cov, renderer, rigid_groups=new_groups
+                )
                 with progress.stage("remap tiles", total=len(gp.grid)) as bar:
                     report = gp.render_all(on_tile=lambda _r: bar.advance())
         layers = {MAP_NAME: with_placement(gp.layers(), new_beams, world_cov)}

@@ -33,6 +33,7 @@ from pipeline.artifacts import (
     SCANS_FILE,
     TRAJECTORY_DIR,
     mapper_covariances,
+    mapper_rigid_groups,
     write_scans,
     write_trajectories,
 )
@@ -101,6 +102,7 @@ def build_maps(
     selected: np.ndarray | None = None,
     renderer: TileRenderer = render_serial,
     render_stats: dict[str, dict[str, float]] | None = None,
+    rigid_groups: np.ndarray | None = None,
 ) -> tuple[dict[str, MapLayers], dict[str, IncrementalMap], GPParams, Bounds]:
     """GP maps for each named trajectory ``{name: (base poses (N,3), covariances (N,3,3) | None)}``.
 
@@ -112,7 +114,8 @@ def build_maps(
     Returns the layers, the tiled maps (:class:`mapping.tiling.IncrementalMap`, ready for incremental
     updates), the parameters and the bounds. ``render_stats``, when given, receives per map rendered whole
     the cells solved and those answered with the prior beyond the kernel's reach, with their seconds
-    (:attr:`mapping.gpmap.GPOccupancyMap.last_query_stats`).
+    (:attr:`mapping.gpmap.GPOccupancyMap.last_query_stats`). ``rigid_groups`` (N,): the scans that share
+    one pose error in every GPPOL map (:func:`pipeline.artifacts.mapper_rigid_groups`; None: each scan alone).
     """
     cfg = config.mapping
     builder = MapBuilder.from_config(cfg)
@@ -129,7 +132,7 @@ def build_maps(
     if params is None:
         with timer("train"), progress.stage("train GP", total=1) as bar:
             first = next(iter(trajectories))
-            params = builder.fit(beams[first], cov_xytheta=trajectories[first][1])
+            params = builder.fit(beams[first], trajectories[first][1], rigid_groups=rigid_groups)
             bar.advance()
     layers: dict[str, MapLayers] = {}
     maps: dict[str, IncrementalMap] = {}
@@ -140,18 +143,31 @@ def build_maps(
                 # instead of one per tile) and gives the same map (bit for bit here; to a float32 ulp on
                 # some CPUs: tests/layer_checks.py); the tiled map adopts it, ready for incremental updates.
                 with progress.stage(f"map {name}", total=1) as bar:
-                    gp = builder.gp_map(beams[name], params, cov)
+                    gp = builder.gp_map(beams[name], params, cov, rigid_groups)
                     whole = gp.render(bounds, cfg.resolution_m)
                     bar.advance()
                 if render_stats is not None:
                     render_stats[name] = dict(gp.last_query_stats)
                 maps[name] = builder.tiled_map(
-                    beams[name], params, bounds, config.scale.tile_cells, cov, renderer, layers=whole
+                    beams[name],
+                    params,
+                    bounds,
+                    config.scale.tile_cells,
+                    cov,
+                    renderer,
+                    layers=whole,
+                    rigid_groups=rigid_groups,
                 )
                 layers[name] = whole  # the tiled map holds its own copy: no second one from layers()
             else:
                 maps[name] = builder.tiled_map(
-                    beams[name], params, bounds, config.scale.tile_cells, cov, renderer
+                    beams[name],
+                    params,
+                    bounds,
+                    config.scale.tile_cells,
+                    cov,
+                    renderer,
+                    rigid_groups=rigid_groups,
                 )
                 with progress.stage(f"map {name}", total=len(maps[name].grid)) as bar:
                     maps[name].render_all(on_tile=lambda _r, bar=bar: bar.advance())
@@ -237,6 +253,7 @@ def run_pipeline(
                 progress,
                 renderer=renderer,
                 render_stats=render_stats,
+                rigid_groups=mapper_rigid_groups(slam),
             )
         (stage / "maps").mkdir()
         params.save(params_path(stage / "maps"))

@@ -22,6 +22,7 @@ from pipeline.evaluate_suite import (
     discover,
     evaluate_slam_poses,
     relations_beside,
+    rigid_groups_on_reference,
     slam_poses_on_reference,
     table_row,
 )
@@ -253,3 +254,13 @@ def test_own_test_points_come_from_the_slam_poses() -> None:
         assert own["per_seed"][0][key] < expected[key] - 0.01, mapper
     with pytest.raises(ValueError, match="test_points_from"):
         evaluate_slam_poses(ref, path, rows, truth, None, mount, [1], cfg, Progress(), None, "truth")
+
+
+def test_rigid_groups_follow_our_scans_onto_the_reference_rows() -> None:
+    """Each reference row takes the rigid group of our scan matched to it; a row no scan of ours matches is
+    a group of its own, apart from every group of ours."""
+    rows = np.array([0, 2, 3, 5])
+    got = rigid_groups_on_reference(7, rows, np.array([0, 0, 1, 1]))
+    np.testing.assert_array_equal(got[rows], [0, 0, 1, 1])
+    alone = np.delete(got, rows)
+    assert len(np.unique(alone)) == 3 and not np.isin(alone, [0, 1]).any()

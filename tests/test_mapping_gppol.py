@@ -3,6 +3,8 @@ paper's dataset II) and the Intel lab with perturbed poses."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -291,3 +293,57 @@ def test_two_platform_world_gppol_with_the_papers_nn_kernel_beats_gpfol_on_every
     auc = r["auc"]
     assert auc["gppol"] > auc["gpfol"] > auc["grid"] + 0.1
     assert r["auc_observed"]["gppol"] > r["auc_observed"]["gpfol"] + 0.008
+
+
+def test_a_rigid_group_is_mapped_as_one_scan(intel) -> None:
+    """Scans of one rigid group share one pose error: their points are placed relative to each other up to
+    the laser noise alone, exactly as the points of one scan (the map equals the one whose grouped scans
+    are merged into one), and differently from independent scans."""
+    rec, poses = intel
+    rows = np.arange(40, 70)
+    beams = em.make_beams(rec, poses, rows, MappingConfig())
+    cov = np.tile(np.diag([0.05**2, 0.05**2, 0.01**2]), (len(rec.scans), 1, 1))
+    groups = np.arange(len(rec.scans)) // 3  # three consecutive scans move together
+    noise = [SensorNoise(1e-4, 3e-6)]
+    params = GPParams(make_kernel("se", (0.9, 0.3)), 0.1, 8.0, 0.3, {"inputs": {}})
+
+    def gppol(b, rigid_groups):
+        inputs = GaussianInputs(
+            input_moments(b, cov, noise),
+            local_moments=input_moments(b, None, noise),
+            rigid_groups=rigid_groups,
+        )
+        return GPOccupancyMap(b, params, 15, 15, inputs=inputs)
+
+    merged = replace(beams, scan_index=groups[beams.scan_index])
+    q = beams.hit_xy_m[::23] + np.array([0.07, -0.04])
+    grouped = gppol(beams, groups).query(q)
+    one_scan = gppol(merged, None).query(q)
+    alone = gppol(beams, None).query(q)
+    np.testing.assert_array_equal(grouped.mean, one_scan.mean)
+    np.testing.assert_array_equal(grouped.variance, one_scan.variance)
+    assert np.abs(grouped.mean - alone.mean).max() > 1e-3
+    occ, seg = gppol(beams, groups).inputs.core_arrays(beams, np.flatnonzero(beams.is_hit))
+    np.testing.assert_array_equal(occ[:, 8], groups[beams.scan_index[beams.is_hit]])
+    np.testing.assert_array_equal(seg[:, 23], groups[beams.scan_index])
+    with pytest.raises(ValueError, match="rigid groups"):
+        gppol(beams, groups[:50]).inputs.core_arrays(beams, np.flatnonzero(beams.is_hit))
+
+
+def test_the_builder_hands_rigid_groups_to_gppol_only_with_covariances(intel) -> None:
+    """``MapBuilder`` passes the rigid groups to GPPOL's inputs (its tiles' factory too); without pose
+    covariances they mean nothing and are dropped."""
+    from mapping.build import MapBuilder
+
+    rec, poses = intel
+    cfg = MappingConfig(**FAST)
+    beams = em.make_beams(rec, poses, np.arange(40, 60), cfg)
+    cov = np.tile(np.diag([0.05**2, 0.05**2, 0.01**2]), (len(rec.scans), 1, 1))
+    groups = np.arange(len(rec.scans)) // 4
+    builder = MapBuilder.from_config(cfg, "gppol")
+    params = GPParams(make_kernel("se", (0.9, 0.3)), 0.1, 8.0, 0.3, {"inputs": {}})
+    np.testing.assert_array_equal(builder.gp_map(beams, params, cov, groups).inputs.rigid_groups, groups)
+    assert builder.gp_map(beams, params, None, groups).inputs.rigid_groups is None
+    bounds = (*beams.hit_xy_m.min(axis=0), *beams.hit_xy_m.max(axis=0))
+    tiled = builder.tiled_map(beams, params, bounds, 64, cov, rigid_groups=groups)
+    np.testing.assert_array_equal(tiled.factory.rigid_groups, groups)

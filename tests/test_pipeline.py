@@ -403,7 +403,8 @@ def test_run_summary_reports_the_cells_solved_and_those_beyond_reach(loop_run) -
 
 def test_build_maps_returns_the_tiled_maps_layers_in_memory_of_their_own(loop_run) -> None:
     """build_maps hands back each map's layers as its tiled map holds them, in arrays of their own (a later
-    update of a tiled map leaves them as they were), and the run's layers.npz are those layers."""
+    update of a tiled map leaves them as they were), and the run's layers.npz are those layers (GPPOL's
+    rigid groups: the keyframes the run folder's covariances.npz names)."""
     from pipeline.api import RunView
     from pipeline.artifacts import read_mapper_covariances
     from pipeline.progress import Progress
@@ -419,7 +420,7 @@ def test_build_maps_returns_the_tiled_maps_layers_in_memory_of_their_own(loop_ru
     scans = view.scans
     layers, maps, _, _ = build_maps(
         scans.scans, scans.laser_in_base_xytheta, trajectories, view.config, StageTimer(), Progress(),
-        params=view.params,
+        params=view.params, rigid_groups=view.rigid_groups,
     )  # fmt: skip
     for name in ("before", "after"):
         held, stored = maps[name].layers(), read_layers_npz(loop_run / "maps" / name / "layers.npz")
@@ -483,3 +484,24 @@ def test_remap_after_a_local_correction_recomputes_only_the_tiles_it_reaches(loo
     assert_same_map(a, b)
     after = read_layers_npz(loop_run / "maps/after/layers.npz")
     assert not np.array_equal(a.probability, after.probability)
+
+
+def test_gppols_rigid_groups_are_the_runs_keyframes(loop_run, tmp_path) -> None:
+    """The scans GPPOL treats as sharing one pose error are those of one keyframe (read back from the run's
+    covariances.npz); a covariance file that names no keyframes of these scans gives none."""
+    from pipeline.api import RunView
+    from pipeline.artifacts import read_keyframe_indices, read_rigid_groups
+
+    view = RunView(loop_run, "after")
+    groups = view.rigid_groups
+    keyframes = read_keyframe_indices(loop_run / "trajectory" / "covariances.npz")
+    n = len(view.scans.scans.stamps_ns)
+    assert groups.shape == (n,) and len(keyframes) < n  # several scans per keyframe on this world
+    np.testing.assert_array_equal(groups[keyframes], np.arange(len(keyframes)))
+    assert np.all(np.diff(groups) >= 0) and np.all(np.diff(groups) <= 1)
+    assert view.gp_map.inputs.rigid_groups is groups
+    other = tmp_path / "other.npz"
+    np.savez(other, scan_stamps_ns=np.arange(n), scan_after=np.zeros((n, 3, 3)))
+    assert read_rigid_groups(other, n) is None
+    np.savez(other, indices=np.array([0, 5, n + 3]))
+    assert read_rigid_groups(other, n) is None
