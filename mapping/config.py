@@ -192,6 +192,12 @@ class GppolConfig(BaseModel):
         "where they disagree; gauge invariant), 'world' the world-frame marginal (relative to the first "
         "pose: grows with the distance from it), 'none' exact poses (laser noise only)",
     )
+    rigid_groups: Literal["scan", "keyframe"] = Field(
+        "scan",
+        description="which scans GPPOL treats as sharing one pose error: each 'scan' alone, or the scans "
+        "of one SLAM 'keyframe' (the pose graph moves them rigidly with it; sharper where the odometry "
+        "between them is accurate, overconfident where it is not)",
+    )
     ut: UnscentedConfig = Field(default_factory=UnscentedConfig)
 
     @model_validator(mode="after")

@@ -194,10 +194,11 @@ class RunView:
 
     @cached_property
     def rigid_groups(self) -> NDArray[np.int64] | None:
-        """(N,) the keyframe of every scan: the scans GPPOL treats as sharing one pose error
-        (:func:`pipeline.artifacts.mapper_rigid_groups`; None when the covariance file names no keyframes)."""
+        """(N,) the scans this run's GPPOL treated as sharing one pose error (``mapping.gppol.rigid_groups``:
+        each scan's keyframe, :func:`pipeline.artifacts.mapper_rigid_groups`; None: each scan alone)."""
         path = self.run_dir / TRAJECTORY_DIR / COVARIANCES_NPZ
-        return read_rigid_groups(path, len(self.scans.scans.stamps_ns))
+        mode = self.config.mapping.gppol.rigid_groups
+        return read_rigid_groups(path, len(self.scans.scans.stamps_ns), mode)
 
     @cached_property
     def params(self) -> GPParams:

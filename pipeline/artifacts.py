@@ -143,17 +143,31 @@ def mapper_covariances(slam: SlamResult, which: str, mode: str) -> NDArray[np.fl
     raise ValueError(f"pose covariances must be one of {POSE_COVARIANCES}, not {mode!r}")
 
 
-def mapper_rigid_groups(slam: SlamResult) -> NDArray[np.int64]:
-    """(N,) the keyframe of every scan: GPPOL's rigid groups (:class:`mapping.gppol.GaussianInputs`). The
-    pose graph moves the scans between two keyframes rigidly with the first (their offsets are the
-    odometry's), so they share its pose error: two points of one keyframe are placed relative to each other
-    up to the laser noise, not up to two independent pose errors."""
+#: What ``mapping.gppol.rigid_groups`` can name (:func:`mapper_rigid_groups`).
+RIGID_GROUPS = ("scan", "keyframe")
+
+
+def mapper_rigid_groups(slam: SlamResult, mode: str) -> NDArray[np.int64] | None:
+    """GPPOL's rigid groups (:class:`mapping.gppol.GaussianInputs`) as ``mapping.gppol.rigid_groups``
+    (``mode``) names them: None for ``"scan"`` (each scan alone), the (N,) keyframe of every scan for
+    ``"keyframe"``. The pose graph moves the scans between two keyframes rigidly with the first (their
+    offsets are the odometry's), so as the graph sees them they share its pose error: two points of one
+    keyframe are placed relative to each other up to the laser noise and the odometry between them."""
+    if mode == "scan":
+        return None
+    if mode != "keyframe":
+        raise ValueError(f"rigid groups must be one of {RIGID_GROUPS}, not {mode!r}")
     return keyframe_of_scan(np.asarray(slam.keyframe_scans, dtype=np.int64), len(slam.stamps_ns))
 
 
-def read_rigid_groups(path: Path, n_scans: int) -> NDArray[np.int64] | None:
+def read_rigid_groups(path: Path, n_scans: int, mode: str) -> NDArray[np.int64] | None:
     """:func:`mapper_rigid_groups` of the ``n_scans`` scans of a run's ``covariances.npz``; None (each scan
-    its own group) when the file names no keyframes of these scans (another tool's file)."""
+    its own group) for ``mode`` ``"scan"`` and when the file names no keyframes of these scans (another
+    tool's file)."""
+    if mode == "scan":
+        return None
+    if mode != "keyframe":
+        raise ValueError(f"rigid groups must be one of {RIGID_GROUPS}, not {mode!r}")
     try:
         keyframes = read_keyframe_indices(path)
     except TrajectoryFormatError:

@@ -94,12 +94,14 @@ def mapping_poses(
     slam_config: Any = None,
     progress: Progress | None = None,
     pose_covariances: str = "relative",
+    rigid_groups: str = "scan",
 ) -> tuple[np.ndarray, str, np.ndarray | None, np.ndarray | None]:
     """(N, 3) base poses to map with, where they come from, their (N, 3, 3) world-frame covariances and
     (N,) rigid groups: the reference poses when the recording has them (``"reference"``, taken as exact:
     None, None), else the optimised trajectory of the SLAM stage, the covariances ``pose_covariances`` names
     (``mapping.gppol.pose_covariances``, :func:`pipeline.artifacts.mapper_covariances`; ``"slam"``, SPEC
-    section 6) and its keyframes (:func:`pipeline.artifacts.mapper_rigid_groups`)."""
+    section 6) and the rigid groups ``rigid_groups`` names (``mapping.gppol.rigid_groups``,
+    :func:`pipeline.artifacts.mapper_rigid_groups`)."""
     if rec.scans is None or len(rec.scans) == 0:
         raise DatasetError(f"{input_path}: no laser scans to map")
     if rec.reference is not None:
@@ -110,7 +112,12 @@ def mapping_poses(
     cov = mapper_covariances(result, "after", pose_covariances)
     if cov is None:
         return np.asarray(result.poses_after_xytheta), "slam", None, None
-    return np.asarray(result.poses_after_xytheta), "slam", np.asarray(cov), mapper_rigid_groups(result)
+    return (
+        np.asarray(result.poses_after_xytheta),
+        "slam",
+        np.asarray(cov),
+        mapper_rigid_groups(result, rigid_groups),
+    )
 
 
 def mapping_laser_poses(
@@ -478,7 +485,7 @@ def evaluate_map(
     cfg = config.mapping
     rec = open_dataset(input_path, config.input)
     base_poses, pose_source, cov, groups = mapping_poses(
-        rec, input_path, config.slam, progress, cfg.gppol.pose_covariances
+        rec, input_path, config.slam, progress, cfg.gppol.pose_covariances, cfg.gppol.rigid_groups
     )
     if gt is not None:
         protocol = "ground_truth"

@@ -570,7 +570,8 @@ def _evaluate(
     truth = reference_base_poses(ref, Path(reference_path))
     ours = np.asarray(result.poses_after_xytheta)[scans]
     our_cov = None if slam_cov is None else np.asarray(slam_cov)[scans]
-    our_groups = None if slam_cov is None else mapper_rigid_groups(result)[scans]
+    slam_groups = mapper_rigid_groups(result, cfg.gppol.rigid_groups)
+    our_groups = None if slam_cov is None or slam_groups is None else slam_groups[scans]
     maps: dict[str, Any] = {"reference_poses": None, "slam_poses": None, "slam_poses_own_test_points": None}
     row["maps"] = maps
     if gt is not None:
@@ -584,7 +585,9 @@ def _evaluate(
         )
         if not np.all(matched):
             raise PipelineError(f"{ref.source}: {int(np.sum(~matched))} scans have no SLAM pose to map")
-        groups = None if cov is None else rigid_groups_on_reference(len(ref.scans), rows, our_groups)
+        groups = None
+        if cov is not None and our_groups is not None:
+            groups = rigid_groups_on_reference(len(ref.scans), rows, our_groups)
         by_slam = evaluate_ground_truth(ref, base, gt, gt_path, cfg, progress, cov=cov, rigid_groups=groups)
         by_slam["alignment_xytheta"] = align.tolist()
         maps["slam_poses"] = _map_result(by_slam, "ground_truth", [], "slam", pose_cov)
@@ -663,7 +666,7 @@ def _own_maps_only(
     t0 = time.perf_counter()
     ours = np.asarray(result.poses_after_xytheta)
     cov = None if slam_cov is None else np.asarray(slam_cov)
-    groups = None if cov is None else mapper_rigid_groups(result)
+    groups = None if cov is None else mapper_rigid_groups(result, cfg.gppol.rigid_groups)
     by_self = evaluate_holdout(rec, ours, seeds, cfg, progress, cov, block_scans=block, rigid_groups=groups)
     mode = cfg.gppol.pose_covariances
     pose_cov = f"SLAM {mode} covariances" if cov is not None else "none (laser noise only)"

@@ -203,8 +203,8 @@ def remap_run(
             cov_stamps, cov = read_mapper_covariances(cov_file, "after", mode)
             new_cov = covariances_at(scans.stamps_ns, cov_stamps, cov)
             _, run_cov = read_mapper_covariances(traj_dir / COVARIANCES_NPZ, "after", mode)
-            new_groups = read_rigid_groups(cov_file, len(scans))
-            run_groups = read_rigid_groups(traj_dir / COVARIANCES_NPZ, len(scans))
+            new_groups = read_rigid_groups(cov_file, len(scans), cfg.gppol.rigid_groups)
+            run_groups = read_rigid_groups(traj_dir / COVARIANCES_NPZ, len(scans), cfg.gppol.rigid_groups)
         try:
             params = GPParams.load(params_path(run_dir / "maps"))
         except (OSError, ParamsFileError) as exc:

@@ -253,7 +253,7 @@ def run_pipeline(
                 progress,
                 renderer=renderer,
                 render_stats=render_stats,
-                rigid_groups=mapper_rigid_groups(slam),
+                rigid_groups=mapper_rigid_groups(slam, config.mapping.gppol.rigid_groups),
             )
         (stage / "maps").mkdir()
         params.save(params_path(stage / "maps"))

@@ -125,9 +125,10 @@ def test_bad_params_file_is_a_config_error(tmp_path) -> None:
 
 @pytest.mark.slow
 def test_fr079_keyframes_rigid_groups_sharpen_the_map_from_our_slam_poses() -> None:
-    """fr079 (a slow robot: about six scans per keyframe). The map from our SLAM's poses, scored on the
-    reference's test points: GPPOL with the keyframes as rigid groups (a run's default) beats GPPOL that
-    takes every scan's pose error as independent, and is at least GPFOL's."""
+    """fr079 (a slow robot: about six scans per keyframe, accurate scan matching). The map from our SLAM's
+    poses, scored on the reference's test points: GPPOL with the keyframes as rigid groups
+    (``mapping.gppol.rigid_groups: keyframe``) beats GPPOL that takes every scan's pose error as independent
+    (the default), and is at least GPFOL's."""
     from pipeline.artifacts import mapper_covariances, mapper_rigid_groups
     from pipeline.evaluate_slam import match_reference_counted
     from pipeline.evaluate_suite import evaluate_slam_poses
@@ -142,7 +143,7 @@ def test_fr079_keyframes_rigid_groups_sharpen_the_map_from_our_slam_poses() -> N
     assert len(result.keyframe_scans) < len(raw.scans) / 4
     ours = np.asarray(result.poses_after_xytheta)[scans]
     cov = np.asarray(mapper_covariances(result, "after", "relative"))[scans]
-    groups = mapper_rigid_groups(result)[scans]
+    groups = mapper_rigid_groups(result, "keyframe")[scans]
     mount = raw.laser_in_base_xytheta
 
     def score(rigid_groups):

@@ -486,22 +486,56 @@ def test_remap_after_a_local_correction_recomputes_only_the_tiles_it_reaches(loo
     assert not np.array_equal(a.probability, after.probability)
 
 
-def test_gppols_rigid_groups_are_the_runs_keyframes(loop_run, tmp_path) -> None:
-    """The scans GPPOL treats as sharing one pose error are those of one keyframe (read back from the run's
-    covariances.npz); a covariance file that names no keyframes of these scans gives none."""
+def test_gppols_rigid_groups_are_the_runs_keyframes_when_configured(loop_run, tmp_path) -> None:
+    """``mapping.gppol.rigid_groups: keyframe``: the scans GPPOL treats as sharing one pose error are those
+    of one keyframe (read back from the run's covariances.npz); a covariance file that names no keyframes of
+    these scans gives none, and so does the default, ``scan`` (each scan alone, as the run mapped)."""
     from pipeline.api import RunView
     from pipeline.artifacts import read_keyframe_indices, read_rigid_groups
 
     view = RunView(loop_run, "after")
-    groups = view.rigid_groups
-    keyframes = read_keyframe_indices(loop_run / "trajectory" / "covariances.npz")
+    assert view.config.mapping.gppol.rigid_groups == "scan" and view.rigid_groups is None
+    assert view.gp_map.inputs.rigid_groups is None
+    path = loop_run / "trajectory" / "covariances.npz"
+    keyframes = read_keyframe_indices(path)
     n = len(view.scans.scans.stamps_ns)
+    groups = read_rigid_groups(path, n, "keyframe")
     assert groups.shape == (n,) and len(keyframes) < n  # several scans per keyframe on this world
     np.testing.assert_array_equal(groups[keyframes], np.arange(len(keyframes)))
     assert np.all(np.diff(groups) >= 0) and np.all(np.diff(groups) <= 1)
-    assert view.gp_map.inputs.rigid_groups is groups
+    assert read_rigid_groups(path, n, "scan") is None
     other = tmp_path / "other.npz"
     np.savez(other, scan_stamps_ns=np.arange(n), scan_after=np.zeros((n, 3, 3)))
-    assert read_rigid_groups(other, n) is None
+    assert read_rigid_groups(other, n, "keyframe") is None
     np.savez(other, indices=np.array([0, 5, n + 3]))
-    assert read_rigid_groups(other, n) is None
+    assert read_rigid_groups(other, n, "keyframe") is None
+    with pytest.raises(ValueError, match="rigid groups"):
+        read_rigid_groups(path, n, "pass")
+
+
+@pytest.mark.slow
+def test_a_run_with_keyframe_rigid_groups_maps_and_remaps_with_them(loop_bag, loop_run, tmp_path) -> None:
+    """``mapping.gppol.rigid_groups: keyframe`` changes the run's GPPOL maps (the scans of one keyframe share
+    its pose error), and ``remap`` rebuilds the same map from the run folder, with the groups the Python API
+    reads back."""
+    from pipeline.api import load_run
+    from pipeline.artifacts import read_keyframe_indices
+
+    out = tmp_path / "grouped"
+    overrides = {
+        **FAST_TRAINING,
+        "mapping": {**FAST_TRAINING.get("mapping", {}), "gppol": {"rigid_groups": "keyframe"}},
+    }
+    run_pipeline(loop_bag, out, load_config(write_config(tmp_path / "grouped.yaml", overrides)))
+    grouped = read_layers_npz(out / "maps/after/layers.npz")
+    alone = read_layers_npz(loop_run / "maps/after/layers.npz")
+    assert grouped.shape == alone.shape
+    # the simulated poses are accurate, so the maps differ little, but they differ
+    assert np.abs(grouped.probability - alone.probability).max() > 0
+    view = load_run(out)
+    assert view.gp_map.inputs.rigid_groups is view.rigid_groups
+    keyframes = read_keyframe_indices(out / "trajectory" / "covariances.npz")
+    np.testing.assert_array_equal(view.rigid_groups[keyframes], np.arange(len(keyframes)))
+    result = run_cli("remap", str(out), "--recompute", "--json")
+    assert result.returncode == 0, result.stderr
+    assert_same_map(grouped, read_layers_npz(out / "remap/maps/remap/layers.npz"))
