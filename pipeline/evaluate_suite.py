@@ -606,39 +606,28 @@ def _evaluate(
     exact = "none (exact reference poses)"
     maps["reference_poses"] = _map_result(by_ref, "holdout", seeds, "reference", exact)
     timings["maps_reference_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    by_slam = evaluate_slam_poses(
-        ref,
-        reference_path,
-        rows,
-        ours,
-        our_cov,
-        rec.laser_in_base_xytheta,
-        seeds,
-        cfg,
-        progress,
-        block,
-        slam_rigid_groups=our_groups,
+    protocols = (
+        ("slam_poses", "maps_slam_s", "reference"),
+        ("slam_poses_own_test_points", "maps_slam_own_s", "slam"),
     )
-    maps["slam_poses"] = _map_result(by_slam, "holdout", seeds, "slam", pose_cov)
-    timings["maps_slam_s"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    by_self = evaluate_slam_poses(
-        ref,
-        reference_path,
-        rows,
-        ours,
-        our_cov,
-        rec.laser_in_base_xytheta,
-        seeds,
-        cfg,
-        progress,
-        block,
-        "slam",
-        our_groups,
-    )
-    maps["slam_poses_own_test_points"] = _map_result(by_self, "holdout", seeds, "slam", pose_cov)
-    timings["maps_slam_own_s"] = time.perf_counter() - t0
+    for key, timing, test_points_from in protocols:
+        t0 = time.perf_counter()
+        by_slam = evaluate_slam_poses(
+            ref,
+            reference_path,
+            rows,
+            ours,
+            our_cov,
+            rec.laser_in_base_xytheta,
+            seeds,
+            cfg,
+            progress,
+            block,
+            test_points_from,
+            our_groups,
+        )
+        maps[key] = _map_result(by_slam, "holdout", seeds, "slam", pose_cov)
+        timings[timing] = time.perf_counter() - t0
 
 
 def _own_maps_only(

@@ -13,6 +13,7 @@ import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -137,6 +138,16 @@ def build_maps(
     layers: dict[str, MapLayers] = {}
     maps: dict[str, IncrementalMap] = {}
     for name, (_, cov) in trajectories.items():
+        tiled = partial(
+            builder.tiled_map,
+            beams[name],
+            params,
+            bounds,
+            config.scale.tile_cells,
+            cov,
+            renderer,
+            rigid_groups=rigid_groups,
+        )
         with timer(f"map_{name}"):
             if renderer is render_serial:
                 # In one process the whole map at once is faster than tile by tile (one neighbour index
@@ -148,27 +159,10 @@ def build_maps(
                     bar.advance()
                 if render_stats is not None:
                     render_stats[name] = dict(gp.last_query_stats)
-                maps[name] = builder.tiled_map(
-                    beams[name],
-                    params,
-                    bounds,
-                    config.scale.tile_cells,
-                    cov,
-                    renderer,
-                    layers=whole,
-                    rigid_groups=rigid_groups,
-                )
+                maps[name] = tiled(layers=whole)
                 layers[name] = whole  # the tiled map holds its own copy: no second one from layers()
             else:
-                maps[name] = builder.tiled_map(
-                    beams[name],
-                    params,
-                    bounds,
-                    config.scale.tile_cells,
-                    cov,
-                    renderer,
-                    rigid_groups=rigid_groups,
-                )
+                maps[name] = tiled()
                 with progress.stage(f"map {name}", total=len(maps[name].grid)) as bar:
                     maps[name].render_all(on_tile=lambda _r, bar=bar: bar.advance())
                 layers[name] = maps[name].layers()
