@@ -303,9 +303,7 @@ class MapBuilder:
         gp = IncrementalMap(
             beams,
             grid,
-            GPMapFactory(
-                self, params, None if cov is None or rigid_groups is None else np.asarray(rigid_groups)
-            ),
+            GPMapFactory(self, params, rigid_groups),
             self.cfg.k_occupied,
             self.cfg.k_free,
             cov,

@@ -147,16 +147,26 @@ def mapper_covariances(slam: SlamResult, which: str, mode: str) -> NDArray[np.fl
 RIGID_GROUPS = ("scan", "keyframe")
 
 
+def _keyframe_groups(mode: str) -> bool:
+    """Whether ``mapping.gppol.rigid_groups`` (``mode``) asks for the keyframes (ValueError if unknown)."""
+    if mode not in RIGID_GROUPS:
+        raise ValueError(f"rigid groups must be one of {RIGID_GROUPS}, not {mode!r}")
+    return mode == "keyframe"
+
+
+def rigid_groups_label(mode: str) -> str:
+    """What the tables add to the name of GPPOL's pose covariances under ``mapping.gppol.rigid_groups``."""
+    return ", shared within keyframes" if _keyframe_groups(mode) else ""
+
+
 def mapper_rigid_groups(slam: SlamResult, mode: str) -> NDArray[np.int64] | None:
     """GPPOL's rigid groups (:class:`mapping.gppol.GaussianInputs`) as ``mapping.gppol.rigid_groups``
     (``mode``) names them: None for ``"scan"`` (each scan alone), the (N,) keyframe of every scan for
     ``"keyframe"``. The pose graph moves the scans between two keyframes rigidly with the first (their
     offsets are the odometry's), so as the graph sees them they share its pose error: two points of one
     keyframe are placed relative to each other up to the laser noise and the odometry between them."""
-    if mode == "scan":
+    if not _keyframe_groups(mode):
         return None
-    if mode != "keyframe":
-        raise ValueError(f"rigid groups must be one of {RIGID_GROUPS}, not {mode!r}")
     return keyframe_of_scan(np.asarray(slam.keyframe_scans, dtype=np.int64), len(slam.stamps_ns))
 
 
@@ -164,10 +174,8 @@ def read_rigid_groups(path: Path, n_scans: int, mode: str) -> NDArray[np.int64] 
     """:func:`mapper_rigid_groups` of the ``n_scans`` scans of a run's ``covariances.npz``; None (each scan
     its own group) for ``mode`` ``"scan"`` and when the file names no keyframes of these scans (another
     tool's file)."""
-    if mode == "scan":
+    if not _keyframe_groups(mode):
         return None
-    if mode != "keyframe":
-        raise ValueError(f"rigid groups must be one of {RIGID_GROUPS}, not {mode!r}")
     try:
         keyframes = read_keyframe_indices(path)
     except TrajectoryFormatError:

@@ -56,7 +56,7 @@ from mapping.evaluation import (
     observed_points,
 )
 from mapping.metrics import log_loss, roc_auc
-from pipeline.artifacts import mapper_covariances, mapper_rigid_groups
+from pipeline.artifacts import mapper_covariances, mapper_rigid_groups, rigid_groups_label
 from pipeline.config import load_config
 from pipeline.errors import PipelineError
 from pipeline.map_bounds import parse_numbers
@@ -110,14 +110,8 @@ def mapping_poses(
 
     result = run_slam_recording(rec, slam_config, progress)
     cov = mapper_covariances(result, "after", pose_covariances)
-    if cov is None:
-        return np.asarray(result.poses_after_xytheta), "slam", None, None
-    return (
-        np.asarray(result.poses_after_xytheta),
-        "slam",
-        np.asarray(cov),
-        mapper_rigid_groups(result, rigid_groups),
-    )
+    groups = mapper_rigid_groups(result, rigid_groups)
+    return np.asarray(result.poses_after_xytheta), "slam", None if cov is None else np.asarray(cov), groups
 
 
 def mapping_laser_poses(
@@ -512,7 +506,9 @@ def evaluate_map(
     if perturb_poses is not None:
         pose_cov = f"diag({perturb_poses[0]}^2, {perturb_poses[0]}^2, {perturb_poses[1]}^2) (perturbed poses)"
     elif cov is not None:
-        pose_cov = f"SLAM {cfg.gppol.pose_covariances} covariances"
+        pose_cov = (
+            f"SLAM {cfg.gppol.pose_covariances} covariances{rigid_groups_label(cfg.gppol.rigid_groups)}"
+        )
     else:
         pose_cov = "none (exact reference poses)"
     table: dict[str, Any] = {

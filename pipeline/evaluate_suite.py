@@ -60,7 +60,7 @@ from datasets.registry import guess_format, open_dataset
 from datasets.types import Recording
 from mapping.config import MappingConfig
 from mapping.evaluation import HOLDOUT_BLOCK, holdout_block_scans
-from pipeline.artifacts import mapper_covariances, mapper_rigid_groups
+from pipeline.artifacts import mapper_covariances, mapper_rigid_groups, rigid_groups_label
 from pipeline.config import Config, load_config
 from pipeline.errors import PipelineError
 from pipeline.evaluate_map import (
@@ -328,7 +328,7 @@ def evaluate_slam_poses(
     truth = reference_base_poses(ref, Path(reference_path))
     test = truth if test_points_from == "reference" else np.where(matched[:, None], base, truth)
     groups = None
-    if cov is not None and slam_rigid_groups is not None:
+    if slam_rigid_groups is not None:
         groups = rigid_groups_on_reference(len(ref.scans), rows, slam_rigid_groups)
     out = evaluate_holdout(
         ref,
@@ -563,7 +563,10 @@ def _evaluate(
     progress = _BarProgress(bar)
     mode = cfg.gppol.pose_covariances
     slam_cov = mapper_covariances(result, "after", mode)
-    pose_cov = f"SLAM {mode} covariances (aligned)" if slam_cov is not None else "none (laser noise only)"
+    shared = rigid_groups_label(cfg.gppol.rigid_groups)
+    pose_cov = (
+        f"SLAM {mode} covariances{shared} (aligned)" if slam_cov is not None else "none (laser noise only)"
+    )
     if ref is None:
         _own_maps_only(row, rec, result, slam_cov, cfg, seeds, progress)
         return
@@ -571,7 +574,7 @@ def _evaluate(
     ours = np.asarray(result.poses_after_xytheta)[scans]
     our_cov = None if slam_cov is None else np.asarray(slam_cov)[scans]
     slam_groups = mapper_rigid_groups(result, cfg.gppol.rigid_groups)
-    our_groups = None if slam_cov is None or slam_groups is None else slam_groups[scans]
+    our_groups = None if slam_groups is None else slam_groups[scans]
     maps: dict[str, Any] = {"reference_poses": None, "slam_poses": None, "slam_poses_own_test_points": None}
     row["maps"] = maps
     if gt is not None:
@@ -585,9 +588,7 @@ def _evaluate(
         )
         if not np.all(matched):
             raise PipelineError(f"{ref.source}: {int(np.sum(~matched))} scans have no SLAM pose to map")
-        groups = None
-        if cov is not None and our_groups is not None:
-            groups = rigid_groups_on_reference(len(ref.scans), rows, our_groups)
+        groups = None if our_groups is None else rigid_groups_on_reference(len(ref.scans), rows, our_groups)
         by_slam = evaluate_ground_truth(ref, base, gt, gt_path, cfg, progress, cov=cov, rigid_groups=groups)
         by_slam["alignment_xytheta"] = align.tolist()
         maps["slam_poses"] = _map_result(by_slam, "ground_truth", [], "slam", pose_cov)
@@ -655,10 +656,11 @@ def _own_maps_only(
     t0 = time.perf_counter()
     ours = np.asarray(result.poses_after_xytheta)
     cov = None if slam_cov is None else np.asarray(slam_cov)
-    groups = None if cov is None else mapper_rigid_groups(result, cfg.gppol.rigid_groups)
+    groups = mapper_rigid_groups(result, cfg.gppol.rigid_groups)
     by_self = evaluate_holdout(rec, ours, seeds, cfg, progress, cov, block_scans=block, rigid_groups=groups)
     mode = cfg.gppol.pose_covariances
-    pose_cov = f"SLAM {mode} covariances" if cov is not None else "none (laser noise only)"
+    shared = rigid_groups_label(cfg.gppol.rigid_groups)
+    pose_cov = f"SLAM {mode} covariances{shared}" if cov is not None else "none (laser noise only)"
     maps["slam_poses_own_test_points"] = _map_result(by_self, "holdout", seeds, "slam", pose_cov)
     row["timings_s"]["maps_slam_own_s"] = time.perf_counter() - t0
 

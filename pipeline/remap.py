@@ -216,8 +216,7 @@ def remap_run(
         and tuple(map_bounds) == run_bounds
         and cfg == run_config.mapping
         and config.scale.tile_cells == run_config.scale.tile_cells
-        and (new_groups is None) == (run_groups is None)
-        and (new_groups is None or np.array_equal(new_groups, run_groups))
+        and np.array_equal(new_groups, run_groups)  # True for None and None
     )
     laser = stored.laser_in_base_xytheta
     builder = MapBuilder.from_config(cfg)

@@ -491,7 +491,7 @@ def test_gppols_rigid_groups_are_the_runs_keyframes_when_configured(loop_run, tm
     of one keyframe (read back from the run's covariances.npz); a covariance file that names no keyframes of
     these scans gives none, and so does the default, ``scan`` (each scan alone, as the run mapped)."""
     from pipeline.api import RunView
-    from pipeline.artifacts import read_keyframe_indices, read_rigid_groups
+    from pipeline.artifacts import read_keyframe_indices, read_rigid_groups, rigid_groups_label
 
     view = RunView(loop_run, "after")
     assert view.config.mapping.gppol.rigid_groups == "scan" and view.rigid_groups is None
@@ -511,6 +511,7 @@ def test_gppols_rigid_groups_are_the_runs_keyframes_when_configured(loop_run, tm
     assert read_rigid_groups(other, n, "keyframe") is None
     with pytest.raises(ValueError, match="rigid groups"):
         read_rigid_groups(path, n, "pass")
+    assert rigid_groups_label("scan") == "" and "keyframes" in rigid_groups_label("keyframe")
 
 
 @pytest.mark.slow
