@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from datasets.config import refuse_moved_keys
 
@@ -474,11 +474,25 @@ class SlamConfig(BaseModel):
 
     keyframe_distance_m: float = Field(0.5, gt=0, description="new keyframe after this much travel")
     keyframe_rotation_rad: float = Field(0.5, gt=0, description="new keyframe after this much rotation")
+    wheel_odometry: Literal["auto", "off"] = Field(
+        "auto",
+        description="'auto': the recording's wheel odometry seeds and steadies the scan matching when it has "
+        "one (slam.system.wheel_odometry says which); 'off': scans only, as for a robot whose wheels slip "
+        "or whose odometry is missing or broken",
+    )
     odometry: OdometryConfig = Field(default_factory=OdometryConfig)
     loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig)
     graph: GraphConfig = Field(default_factory=GraphConfig)
     consistency: ConsistencyConfig = Field(default_factory=ConsistencyConfig)
     cloud: CloudOdometryConfig = Field(default_factory=CloudOdometryConfig)
+
+    @field_validator("wheel_odometry", mode="before")
+    @classmethod
+    def _yaml_off(cls, value: Any) -> Any:
+        """YAML reads an unquoted ``off`` as false (and ``on`` as true): take them as meant."""
+        if isinstance(value, bool):
+            return "auto" if value else "off"
+        return value
 
     @model_validator(mode="after")
     def _ranges(self) -> SlamConfig:

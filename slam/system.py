@@ -58,7 +58,8 @@ def run_slam_recording(
 ) -> SlamResult:
     """SLAM on whatever a recording holds: its 3D clouds (KISS-ICP + ``Pose3`` graph,
     :func:`slam.system3d.run_slam_clouds`) when it has them, else its planar scans and wheel odometry
-    (:func:`run_slam`). The result has the same contract either way. ``faults``: wrong closures to inject
+    (:func:`run_slam`), with the wheel odometry of :func:`wheel_odometry` unless ``config.wheel_odometry``
+    is ``"off"``. The result has the same contract either way. ``faults``: wrong closures to inject
     (:mod:`slam.faults`; planar scans only)."""
     if recording.clouds is not None and len(recording.clouds) > 0:
         from slam.system3d import run_slam_clouds
@@ -66,7 +67,10 @@ def run_slam_recording(
         if faults is not None:
             raise ValueError("false-closure injection is implemented for planar scans, not for 3D clouds")
         return run_slam_clouds(recording.clouds, config, progress)
-    wheel, wheel_source = wheel_odometry(recording)
+    if config is not None and config.wheel_odometry == "off":
+        wheel, wheel_source = None, "none: slam.wheel_odometry is off (scans only)"
+    else:
+        wheel, wheel_source = wheel_odometry(recording)
     result = run_slam(recording.scans, wheel, recording.laser_in_base_xytheta, config, progress, faults)
     return replace(result, wheel_odometry=wheel_source)
 

@@ -87,3 +87,18 @@ def test_every_moved_key_points_at_an_existing_field() -> None:
         for part in new.split("."):
             assert part in type(obj).model_fields, new
             obj = getattr(obj, part)
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [("off", "off"), ("'off'", "off"), ("on", "auto"), ("auto", "auto"), ("true", "auto"), ("false", "off")],
+)
+def test_wheel_odometry_reads_yamls_unquoted_off_as_meant(tmp_path, text: str, expected: str) -> None:
+    """YAML 1.1 reads an unquoted ``off`` as false and ``on`` as true; the switch takes them as meant and
+    still rejects anything else with one line."""
+    path = tmp_path / "c.yaml"
+    path.write_text(f"slam:\n  wheel_odometry: {text}\n")
+    assert load_config(path).slam.wheel_odometry == expected
+    path.write_text("slam:\n  wheel_odometry: never\n")
+    with pytest.raises(ConfigError, match=r"slam\.wheel_odometry"):
+        load_config(path)
