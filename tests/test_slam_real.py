@@ -1,5 +1,6 @@
-"""End-to-end SLAM on the full real logs (slow): intel.clf against intel.gfs.log (ATE and a relations file
-derived from it) and fr079.clf against freiburg-079-corrected.log.gz."""
+"""End-to-end SLAM on real logs: intel.clf against intel.gfs.log (ATE and a relations file derived from it)
+and fr079.clf against freiburg-079-corrected.log.gz (slow, the full logs); the Edmonton convention centre
+on its scans alone."""
 
 from __future__ import annotations
 
@@ -69,7 +70,7 @@ def test_fr079_ate_after_loop_closure() -> None:
 def test_scans_only_slam_when_the_wheels_are_switched_off(tmp_path) -> None:
     """``slam.wheel_odometry: off`` runs SLAM on the scans alone, even where the log has wheel odometry:
     on the Edmonton convention centre it still closes its loops, every one correct, and ends within half a
-    metre of the reference (its wheels, used by default, are not what holds the map together)."""
+    metre of the reference; by default the same log uses its ODOM records."""
     log = data_file("radish-corrected/edmonton-corrected.log.gz")
     config = tmp_path / "scans_only.yaml"
     config.write_text("slam:\n  wheel_odometry: off\n")  # YAML's unquoted off is false: taken as meant
