@@ -293,7 +293,9 @@ def score_relations(
     ``local`` and ``revisit`` split the relations after loop closure by the travel between their scans
     (:data:`slam.metrics.LOCAL_TRAVEL_M`): the front end's share of the error and the loop closures'.
     ``wheels_local``, with the (N, 3) wheel poses at the scans ``wheel_xytheta``: the wheel odometry alone
-    on the local relations, what scan matching has to beat.
+    on the local relations, what scan matching has to beat. ``closures``: the accepted loop closures that a
+    relation joins, judged by it (:func:`slam.metrics.closures_against_relations`): the benchmark's truth,
+    where a corrected log's poses may err by degrees.
     """
     name, ok, i1, i2 = matched
     a, b = i1[ok], i2[ok]
@@ -314,9 +316,34 @@ def score_relations(
     if wheel_xytheta is not None:
         w = np.asarray(wheel_xytheta, dtype=np.float64)
         out["wheels_local"] = metrics.relation_errors(w[a[local]], w[b[local]], target[local]).as_dict()
+    lc = result.loop_closures
+    out["closures"] = metrics.closures_against_relations(
+        result.keyframe_scans,
+        result.poses_before_xytheta,
+        np.array([c.query_keyframe for c in lc], dtype=np.int64),
+        np.array([c.target_keyframe for c in lc], dtype=np.int64),
+        np.array([c.relative_xytheta for c in lc]).reshape(-1, 3),
+        (a, b),
+        target,
+    )
     out["unmatched"] = int(np.sum(~ok))
     out["matched_by"] = name
     return out
+
+
+def judged_closures_text(judged: dict[str, Any] | None) -> str:
+    """``correct / judged`` of the loop closures a relation judges (:func:`score_relations`), with the
+    wrong one furthest beyond the tolerance; ``-`` when none is judged (or a JSON from before the
+    judgement)."""
+    if not judged or not judged.get("judged"):
+        return "-"
+
+    def beyond(w: dict[str, float]) -> float:  # how many tolerances off
+        return max(w["error_m"] / metrics.CLOSURE_TOLERANCE_M, w["error_deg"] / metrics.CLOSURE_TOLERANCE_DEG)
+
+    worst = max(judged["wrong"], key=beyond, default=None)
+    wrong = "" if worst is None else f" (worst {worst['error_m']:.2f} m / {worst['error_deg']:.1f} deg)"
+    return f"{judged['correct']} / {judged['judged']}{wrong}"
 
 
 def _table(out: dict[str, Any]) -> dict[str, Any]:
@@ -351,6 +378,8 @@ def _table(out: dict[str, Any]) -> dict[str, Any]:
             if part and part["count"]:
                 count = "" if key == "wheels_local" else f"{part['count']}, "
                 rows[label] = f"{count}{part['trans_mean_m']:.4f} / {part['rot_mean_deg']:.3f}"
+        if (rel.get("closures") or {}).get("judged"):
+            rows["loop closures a relation judges: correct / judged"] = judged_closures_text(rel["closures"])
     s = out["slam"]
     rows["scans / keyframes"] = f"{s['scans']} / {s['keyframes']}"
     closures = f"{s['loop_closures_accepted']} / {s['loop_closures_rejected']}"

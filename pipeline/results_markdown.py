@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from datasets.paths import REPO_DIR
+from pipeline.evaluate_slam import judged_closures_text
 from pipeline.provenance import UNKNOWN, machine_text
 from slam.metrics import LOCAL_TRAVEL_M
 
@@ -245,11 +246,12 @@ def published_table(rows: list[dict[str, Any]]) -> str | None:
         theirs, source = published
         ours = f"{bench['trans_mean_m']:.4f} m / {bench['rot_mean_deg']:.3f} deg"
         parts = [_relations_part(bench.get(key)) for key in ("local", "revisit", "wheels_local")]
-        lines.append([row["name"], ours, theirs, source, *parts])
+        lines.append([row["name"], ours, theirs, source, *parts, judged_closures_text(bench.get("closures"))])
     if not lines:
         return None
     header = ["recording", "ours: relations after loop closure", "published", "source"]
     header += ["ours, local relations", "ours, across passes", "wheels alone, local relations"]
+    header += ["closures a relation judges: correct / judged"]
     return md_table(header, lines)
 
 
@@ -457,7 +459,8 @@ def suite_markdown(
             "Mean translation / rotation error against the SLAM benchmark's relations (Kuemmerle et al. "
             "2009) after loop closure; then ours split (count: m / deg) into the local relations (at most "
             f"{LOCAL_TRAVEL_M:g} m of travel apart: the front end) and those across passes (the loop "
-            "closures), and the wheel odometry alone on the local ones.",
+            "closures), and the wheel odometry alone on the local ones; last, the accepted loop closures "
+            "whose two places a relation joins, judged by it (0.2 m / 2 deg).",
             "",
             published,
             "",

@@ -136,6 +136,11 @@ def nees(
     return np.einsum("ni,nij,nj->n", e, np.linalg.inv(cov_world), e)
 
 
+#: How far a loop closure's relative pose may be from the truth and still count as correct.
+CLOSURE_TOLERANCE_M = 0.2
+CLOSURE_TOLERANCE_DEG = 2.0
+
+
 def loop_closure_scores(
     keyframe_reference_xytheta: FloatArray,
     keyframe_path_m: FloatArray,
@@ -145,8 +150,8 @@ def loop_closure_scores(
     min_separation_m: float,
     revisit_radius_m: float = 2.0,
     coverage_m: float = 2.0,
-    tolerance_m: float = 0.2,
-    tolerance_deg: float = 2.0,
+    tolerance_m: float = CLOSURE_TOLERANCE_M,
+    tolerance_deg: float = CLOSURE_TOLERANCE_DEG,
 ) -> dict[str, float | int | None]:
     """Precision and recall of accepted loop closures against reference keyframe poses.
 
@@ -187,6 +192,76 @@ def loop_closure_scores(
         "revisit_keyframes": n_rev,
         "covered_revisits": int((revisit & covered).sum()),
         "recall": float((revisit & covered).sum() / n_rev) if n_rev else None,
+    }
+
+
+#: Scans of our odometry, each side, that may bridge a loop closure's keyframes to a relation's scans
+#: (:func:`closures_against_relations`): a second or two of motion, millimetres of odometry error.
+RELATION_BRIDGE_SCANS = 10
+
+
+def closures_against_relations(
+    keyframe_scans: NDArray[np.int64],
+    odometry_xytheta: FloatArray,
+    query_keyframes: NDArray[np.int64],
+    target_keyframes: NDArray[np.int64],
+    relative_xytheta: FloatArray,
+    relation_scans: tuple[NDArray[np.int64], NDArray[np.int64]],
+    relation_xytheta: FloatArray,
+    bridge_scans: int = RELATION_BRIDGE_SCANS,
+    tolerance_m: float = CLOSURE_TOLERANCE_M,
+    tolerance_deg: float = CLOSURE_TOLERANCE_DEG,
+) -> dict[str, object]:
+    """Loop closures judged by the benchmark's relations, where a relation joins the closure's two places.
+
+    A closure ``(query, target, relative)`` (``relative``: the query keyframe's pose in the target's frame)
+    is *judged* when a relation's two scans lie within ``bridge_scans`` scans of the target's and the
+    query's keyframe scans (in either order); the nearest such relation, carried to the keyframes by our
+    odometry over those few scans (``odometry_xytheta`` (N, 3), before loop closure, which the closure does
+    not move), gives the true relative pose. The closure is correct within ``tolerance_m`` and
+    ``tolerance_deg`` of it, as :func:`loop_closure_scores` judges against a reference trajectory. Inputs:
+    (K,) keyframe scans, (C,) query and target keyframes, (C, 3) relative poses, the relations' (R,) scans
+    ``(scan1, scan2)`` and (R, 3) relative poses (scan2's pose in scan1's frame). Returns ``judged``,
+    ``correct``, ``precision`` (None when none is judged), ``bridge_scans`` and ``wrong``: per wrong
+    closure its keyframes and its translation (m) and rotation (deg) errors."""
+    kf = np.asarray(keyframe_scans, dtype=np.int64)
+    odo = np.asarray(odometry_xytheta, dtype=np.float64)
+    s1, s2 = (np.asarray(x, dtype=np.int64) for x in relation_scans)
+    rel = np.asarray(relation_xytheta, dtype=np.float64).reshape(-1, 3)
+    closures = np.asarray(relative_xytheta, dtype=np.float64).reshape(-1, 3)
+    judged = correct = 0
+    wrong: list[dict[str, float | int]] = []
+    for q, t, measured in zip(query_keyframes, target_keyframes, closures, strict=True):
+        sq, st = kf[q], kf[t]
+        best = None
+        for near_t, near_q, flip in ((s1, s2, False), (s2, s1, True)):
+            gap = np.abs(near_t - st) + np.abs(near_q - sq)
+            ok = (np.abs(near_t - st) <= bridge_scans) & (np.abs(near_q - sq) <= bridge_scans)
+            if ok.any():
+                i = int(np.flatnonzero(ok)[np.argmin(gap[ok])])
+                if best is None or gap[i] < best[0]:
+                    best = (int(gap[i]), i, flip)
+        if best is None:
+            continue
+        _, i, flip = best
+        a, b = (s2[i], s1[i]) if flip else (s1[i], s2[i])  # a near the target, b near the query
+        r = se2.inverse(rel[i]) if flip else rel[i]
+        truth = se2.compose(se2.compose(se2.between(odo[st], odo[a]), r), se2.between(odo[b], odo[sq]))
+        err = se2.between(truth, measured)
+        err_m, err_deg = float(np.hypot(err[0], err[1])), float(np.degrees(abs(se2.wrap(err[2]))))
+        judged += 1
+        if err_m <= tolerance_m and err_deg <= tolerance_deg:
+            correct += 1
+        else:
+            wrong.append(
+                {"query_keyframe": int(q), "target_keyframe": int(t), "error_m": err_m, "error_deg": err_deg}
+            )
+    return {
+        "judged": judged,
+        "correct": correct,
+        "precision": correct / judged if judged else None,
+        "bridge_scans": int(bridge_scans),
+        "wrong": wrong,
     }
 
 

@@ -37,7 +37,9 @@ def test_relations_of_the_base_score_zero_with_a_mounting_off_the_base() -> None
     mount = np.array([0.22, 0.0, 0.0])  # fr-clinic's laser, 0.22 m ahead of the base
     stamps = np.arange(len(base), dtype=np.int64) * 1_000_000_000
     rec = SimpleNamespace(laser_in_base_xytheta=mount, scans=SimpleNamespace(stamps_ns=stamps), meta={})
-    result = SimpleNamespace(poses_after_xytheta=base, poses_before_xytheta=base)
+    result = SimpleNamespace(
+        poses_after_xytheta=base, poses_before_xytheta=base, keyframe_scans=np.zeros(1, int), loop_closures=()
+    )
     a = np.arange(0, len(base) - 5, 3)
     b = a + 5
     of_base = _relations(base, stamps, a, b)
@@ -51,13 +53,23 @@ def test_relations_of_the_base_score_zero_with_a_mounting_off_the_base() -> None
 
 def test_relations_split_into_local_and_revisits_with_the_wheels_alone_on_the_local_ones() -> None:
     """Relations a few metres of travel apart score the front end, those across passes the loop closures;
-    the wheel odometry alone is scored on the local ones."""
+    the wheel odometry alone is scored on the local ones. The loop closures a relation joins are judged by
+    it: one right, one 0.5 m off; one that no relation reaches is not judged."""
     base = _turning_base_trajectory(200)  # 0.3 m per step: 60 m of travel
     stamps = np.arange(len(base), dtype=np.int64) * 1_000_000_000
     rec = SimpleNamespace(laser_in_base_xytheta=np.zeros(3), scans=SimpleNamespace(stamps_ns=stamps), meta={})
     after = base.copy()
     after[150:] = se2.compose(after[150:], np.array([0.5, 0.0, 0.0]))  # a jump 45 m of travel in
-    result = SimpleNamespace(poses_after_xytheta=after, poses_before_xytheta=base)
+    keyframes = np.arange(0, len(base), 10)
+
+    def closure(q: int, t: int, off) -> SimpleNamespace:  # keyframe q seen from keyframe t, plus an error
+        rel = se2.between(base[10 * t], base[10 * q]) + off
+        return SimpleNamespace(query_keyframe=q, target_keyframe=t, relative_xytheta=rel)
+
+    closures = (closure(16, 0, 0.0), closure(19, 3, [0.5, 0.0, 0.0]), closure(12, 5, 0.0))
+    result = SimpleNamespace(
+        poses_after_xytheta=after, poses_before_xytheta=base, keyframe_scans=keyframes, loop_closures=closures
+    )
     a = np.array([0, 10, 20, 140, 0, 30, 100])
     b = np.array([5, 15, 30, 145, 160, 190, 180])  # local: 1.5, 1.5, 3, 1.5 m; 3 revisits across the jump
     relations = _relations(base, stamps, a, b)
@@ -68,6 +80,9 @@ def test_relations_split_into_local_and_revisits_with_the_wheels_alone_on_the_lo
     assert out["local"]["count"] == 4 and out["local"]["trans_mean_m"] < 1e-9
     assert out["revisit"]["count"] == 3 and out["revisit"]["trans_mean_m"] > 0.1
     assert out["wheels_local"]["count"] == 4 and out["wheels_local"]["trans_mean_m"] < 1e-9
+    judged = out["closures"]  # 0 -> 160 and 30 -> 190 join keyframes 0 / 16 and 3 / 19; none reaches 5 / 12
+    assert judged["judged"] == 2 and judged["correct"] == 1
+    assert [(w["query_keyframe"], round(w["error_m"], 9)) for w in judged["wrong"]] == [(19, 0.5)]
     wheels[15] += np.array([0.2, 0.0, 0.0])  # now the relation 10 -> 15 is off by 0.2 m
     out = score_relations(result, relations, match_relations(rec, relations, "r.relations"), wheels)
     assert abs(out["wheels_local"]["trans_mean_m"] - 0.2 / 4) < 1e-9

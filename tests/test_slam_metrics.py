@@ -93,6 +93,49 @@ def test_loop_closure_precision_and_recall() -> None:
     assert none["precision"] is None and none["recall"] == 0.0
 
 
+def test_loop_closures_judged_by_the_relations_that_join_their_places() -> None:
+    """A loop of 40 scans (keyframes every 4th): the relations are exact, some a few scans off the
+    keyframes (the odometry, here exact, bridges them), one stored in the reverse order. A closure is judged
+    by the nearest relation within the bridge; a right one is correct, one 0.5 m or 3 deg off is wrong, and
+    one no relation reaches is not judged."""
+    ang = np.linspace(0.0, 2.0 * np.pi, 40, endpoint=False)
+    truth = np.column_stack([5.0 * np.cos(ang), 5.0 * np.sin(ang), ang + np.pi / 2])
+    keyframes = np.arange(0, 40, 4)
+    pairs = np.array([[1, 37], [6, 30], [22, 9]])  # scans: near keyframes 0 / 9, 1 / 7, 2 / 6 (reversed)
+    relations = se2.between(truth[pairs[:, 0]], truth[pairs[:, 1]])
+    query, target = np.array([9, 7, 6, 8]), np.array([0, 1, 2, 3])
+    closures = se2.between(truth[keyframes[target]], truth[keyframes[query]])
+    closures[1, 1] += 0.5  # half a metre off
+    closures[2, 2] += np.radians(3.0)  # three degrees off
+    out = metrics.closures_against_relations(
+        keyframes, truth, query, target, closures, (pairs[:, 0], pairs[:, 1]), relations, bridge_scans=3
+    )
+    assert out["judged"] == 3 and out["correct"] == 1 and out["precision"] == pytest.approx(1 / 3)
+    by_query = {w["query_keyframe"]: w for w in out["wrong"]}
+    assert sorted(by_query) == [6, 7]
+    assert by_query[7]["error_m"] == pytest.approx(0.5) and by_query[7]["error_deg"] == pytest.approx(
+        0.0, abs=1e-9
+    )
+    assert by_query[6]["error_deg"] == pytest.approx(3.0) and by_query[6]["error_m"] == pytest.approx(
+        0.0, abs=1e-9
+    )
+    # a bridge of one scan reaches only the first relation (one scan from each keyframe)
+    narrow = metrics.closures_against_relations(
+        keyframes, truth, query, target, closures, (pairs[:, 0], pairs[:, 1]), relations, bridge_scans=1
+    )
+    assert narrow["judged"] == 1 and narrow["correct"] == 1
+    none = metrics.closures_against_relations(
+        keyframes,
+        truth,
+        np.zeros(0, int),
+        np.zeros(0, int),
+        np.zeros((0, 3)),
+        (pairs[:, 0], pairs[:, 1]),
+        relations,
+    )
+    assert none["judged"] == 0 and none["precision"] is None and none["wrong"] == []
+
+
 def test_reference_noise_is_the_jitter_of_a_reference_against_a_smooth_odometry() -> None:
     """A straight drive, the odometry exact, the reference with 1 cm / 0.3 deg of white noise per pose:
     the estimate recovers that noise (the step differences carry two poses' noise each)."""
