@@ -23,7 +23,7 @@ from mapping.calibration import holdout_link
 from mapping.config import MappingConfig
 from mapping.exports import MapLayers
 from mapping.gpmap import GPOccupancyMap
-from mapping.gppol import GaussianInputs, SensorNoise, input_moments
+from mapping.gppol import GaussianInputs, RigidGroups, SensorNoise, input_moments
 from mapping.grid import OccupancyGrid
 from mapping.kernels import KERNELS, Kernel, make_kernel
 from mapping.noisy_kernels import GAUSS_HERMITE, GIRARD, InputExpectation
@@ -124,12 +124,13 @@ class MapBuilder:
         beams: Beams,
         cov_xytheta: NDArray | None,
         kernel: Kernel,
-        rigid_groups: NDArray | None = None,
+        rigid_groups: RigidGroups | None = None,
     ) -> GaussianInputs:
         """The GPPOL inputs of ``beams``: the unscented transform of every beam under its scan's pose
         covariance and the per-source laser noise; the free points' inputs without range noise unless
-        ``gppol_free_range_noise``. ``rigid_groups`` (N,): the scans that share one pose error
-        (:class:`mapping.gppol.GaussianInputs`; None: each scan alone; unused without covariances)."""
+        ``gppol_free_range_noise``. ``rigid_groups``: the scans that share one pose error, and each one's
+        offset from it (:class:`mapping.gppol.GaussianInputs`; None: each scan alone; unused without
+        covariances)."""
         cfg = self.cfg
         ut = UTParams(cfg.gppol.ut.alpha, cfg.gppol.ut.beta, cfg.gppol.ut.kappa)
         noise = self.sensor_noise(beams.source_names)
@@ -139,14 +140,22 @@ class MapBuilder:
             no_range = [SensorNoise(0.0, s.bearing_var_rad2) for s in noise]
             if not cfg.gppol.free_range_noise:
                 free = input_moments(beams, cov_xytheta, no_range, ut)
+            group = group_free = None
             if cov_xytheta is not None:  # the laser noise alone, for pairs of points of one scan
                 local = input_moments(beams, None, noise, ut)
                 if not cfg.gppol.free_range_noise:
                     local_free = input_moments(beams, None, no_range, ut)
+                offsets = None if rigid_groups is None else rigid_groups.offset_cov_world(beams)
+                if offsets is not None:  # and each scan's offset from its group, for pairs of one group
+                    group = input_moments(beams, offsets, noise, ut)
+                    if not cfg.gppol.free_range_noise:
+                        group_free = input_moments(beams, offsets, no_range, ut)
         except ValueError as exc:
             raise MappingError(f"cannot build the GPPOL inputs: {exc}") from None
-        groups = None if cov_xytheta is None or rigid_groups is None else np.asarray(rigid_groups, np.int64)
-        return GaussianInputs(moments, self.input_expectation(kernel), free, local, local_free, groups)
+        groups = None if cov_xytheta is None or rigid_groups is None else rigid_groups.group_of_scan
+        return GaussianInputs(
+            moments, self.input_expectation(kernel), free, local, local_free, groups, group, group_free
+        )
 
     # -- parameters -------------------------------------------------------------------------------------
 
@@ -164,7 +173,7 @@ class MapBuilder:
         beams: Beams,
         cov_xytheta: NDArray | None = None,
         seed_offset: int = 0,
-        rigid_groups: NDArray | None = None,
+        rigid_groups: RigidGroups | None = None,
     ) -> GPParams:
         """Stored parameters if configured, else hyperparameters and PLS link learnt from ``train.scans``
         scans of ``beams`` in ``train.windows`` runs spread over the recording: GPFOL with ``cfg.kernel``;
@@ -230,7 +239,7 @@ class MapBuilder:
         beams: Beams,
         cov_xytheta: NDArray | None,
         seed_offset: int,
-        rigid_groups: NDArray | None = None,
+        rigid_groups: RigidGroups | None = None,
     ) -> GPParams:
         """``params`` with the PLS link refitted on held-out scans of ``beams``
         (:func:`mapping.calibration.holdout_link`); unchanged when too few scans (``params.info["pls"]`` says
@@ -259,10 +268,10 @@ class MapBuilder:
         beams: Beams,
         params: GPParams,
         cov_xytheta: NDArray | None = None,
-        rigid_groups: NDArray | None = None,
+        rigid_groups: RigidGroups | None = None,
     ) -> GPOccupancyMap:
         """The GP occupancy map over ``beams`` with ``params``: GPPOL on the beams' input Gaussians (the
-        scans' pose covariances ``cov_xytheta`` (N, 3, 3), shared within ``rigid_groups`` (N,)), GPFOL on
+        scans' pose covariances ``cov_xytheta`` (N, 3, 3), shared within ``rigid_groups``), GPFOL on
         the beams as they are."""
         if self.mapper == "gpfol" and "inputs" in params.info:
             raise MappingError("these GP parameters were learnt for GPPOL: learn them with mapper='gpfol'")
@@ -289,7 +298,7 @@ class MapBuilder:
         cov_xytheta: NDArray | None = None,
         renderer: TileRenderer = render_serial,
         layers: MapLayers | None = None,
-        rigid_groups: NDArray | None = None,
+        rigid_groups: RigidGroups | None = None,
     ) -> IncrementalMap:
         """The tiled map of ``beams`` on the grid of ``bounds_xy_m`` at ``cfg.resolution_m`` (tiles of
         ``tile_cells`` cells a side), rendered tile by tile by ``renderer`` and updatable when poses change.
@@ -323,7 +332,7 @@ class GPMapFactory:
 
     builder: MapBuilder
     params: GPParams
-    rigid_groups: NDArray | None = None
+    rigid_groups: RigidGroups | None = None
 
     def __call__(self, beams: Beams, cov_xytheta: NDArray | None) -> Any:
         return self.builder.gp_map(beams, self.params, cov_xytheta, self.rigid_groups)

@@ -195,8 +195,8 @@ class GppolConfig(BaseModel):
     rigid_groups: Literal["scan", "keyframe"] = Field(
         "scan",
         description="which scans GPPOL treats as sharing one pose error: each 'scan' alone, or the scans "
-        "of one SLAM 'keyframe' (the pose graph moves them rigidly with it; sharper where the odometry "
-        "between them is accurate, overconfident where it is not)",
+        "of one SLAM 'keyframe' (the pose graph moves them rigidly with it; each strays from it by its "
+        "odometry from the keyframe, whose covariance two scans of one keyframe are integrated over)",
     )
     ut: UnscentedConfig = Field(default_factory=UnscentedConfig)
 

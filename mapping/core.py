@@ -361,17 +361,27 @@ INPUTS_GIRARD = 1  # GPPOL, SE kernel, Girard's closed form (eq. 19)
 INPUTS_GH_DIFFERENCE = 2  # GPPOL, stationary kernel, Gauss-Hermite over the difference x_i - x_j (eq. 23)
 INPUTS_GH_NODES = 3  # GPPOL, NN kernel, Gauss-Hermite nodes of both inputs (eq. 23)
 
+#: Columns of GPPOL's endpoint and beam rows (:func:`_gaussian_inputs`), and of the rows of inputs whose
+#: rigid groups carry each scan's offset from the group (three levels of pair covariance, :func:`_pair_cov`).
+OCC_COLUMNS = 9
+SEG_COLUMNS = 24
+OCC_COLUMNS_GROUPED = 13
+SEG_COLUMNS_GROUPED = 34
+
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
-def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, SLo, G, y):
+def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, SLo, SGr, G, GG, y):
     """GPPOL training inputs centred on the query: means X (n, 2), packed covariances S (n, 3), packed
-    covariances of the laser noise alone SLo (n, 3) and rigid groups G (n,).
+    covariances of the laser noise alone SLo (n, 3), rigid groups G (n,); with grouped rows, also the
+    covariances within the rigid group SGr (n, 3) and the groups GG (n,), G then holding the scans.
 
-    ``occ_mom`` (H, 9): mean, covariance, laser-noise covariance and scan of each endpoint (cell order of
-    the point index); ``seg_mom`` (M, 24): per beam ``a, b, C0, C1, C2`` of
-    :class:`mapping.unscented.BeamMoments`, the length L of its free part, the laser noise's ``C0, C1, C2``
-    and the scan's rigid group, so that the free point at t along the segment is at d = t L:
-    ``rho = a + d b``, ``Sigma = C0 + d C1 + d^2 C2`` (exact UT, Algorithm 3 steps 5-8)."""
+    ``occ_mom`` (H, OCC_COLUMNS): mean, covariance, laser-noise covariance and rigid group (a scan, or the
+    scans of one keyframe) of each endpoint (cell order of the point index); ``seg_mom`` (M, SEG_COLUMNS):
+    per beam ``a, b, C0, C1, C2`` of :class:`mapping.unscented.BeamMoments`, the length L of its free part,
+    the laser noise's ``C0, C1, C2`` and the rigid group, so that the free point at t along the segment is
+    at d = t L: ``rho = a + d b``, ``Sigma = C0 + d C1 + d^2 C2`` (exact UT, Algorithm 3 steps 5-8).
+    Grouped rows (OCC_COLUMNS_GROUPED, SEG_COLUMNS_GROUPED) hold the scan where the others hold the group,
+    then the within-group covariance (``C0, C1, C2`` per beam) and the group."""
     for i in range(no):
         j = ido[i]
         X[i, 0] = occ_mom[j, 0] - qx
@@ -397,6 +407,20 @@ def _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, SLo, 
         SLo[no + i, 2] = seg_mom[j, 16] + d * (seg_mom[j, 19] + d * seg_mom[j, 22])
         G[no + i] = seg_mom[j, 23]
         y[no + i] = -1.0
+    if occ_mom.shape[1] == OCC_COLUMNS_GROUPED:
+        for i in range(no):
+            j = ido[i]
+            SGr[i, 0] = occ_mom[j, 9]
+            SGr[i, 1] = occ_mom[j, 10]
+            SGr[i, 2] = occ_mom[j, 11]
+            GG[i] = occ_mom[j, 12]
+        for i in range(nf):
+            j = idf[i]
+            d = tf[i] * seg_mom[j, 13]
+            SGr[no + i, 0] = seg_mom[j, 24] + d * (seg_mom[j, 27] + d * seg_mom[j, 30])
+            SGr[no + i, 1] = seg_mom[j, 25] + d * (seg_mom[j, 28] + d * seg_mom[j, 31])
+            SGr[no + i, 2] = seg_mom[j, 26] + d * (seg_mom[j, 29] + d * seg_mom[j, 32])
+            GG[no + i] = seg_mom[j, 33]
     return no + nf
 
 
@@ -408,6 +432,19 @@ def _pair_cov(SL, SLo, GL, i, j, lane, c):
     one_scan = SLo[i, c, lane] + SLo[j, c, lane]
     two_scans = SL[i, c, lane] + SL[j, c, lane]
     return one_scan if GL[i, lane] == GL[j, lane] else two_scans  # a select, not a branch: vectorised
+
+
+@nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True, inline="always")
+def _pair_cov_grouped(SL, SLo, SGr, GL, GGL, i, j, lane, c):
+    """:func:`_pair_cov` of grouped inputs (GL the scans, GGL the rigid groups): the laser noise's alone for
+    two inputs of one scan; the covariances within their rigid group (the laser noise and each scan's
+    odometry from the group's keyframe) for two scans of one group, whose shared pose error moves both
+    alike; ``Sigma_i + Sigma_j`` otherwise."""
+    one_scan = SLo[i, c, lane] + SLo[j, c, lane]
+    one_group = SGr[i, c, lane] + SGr[j, c, lane]
+    two_groups = SL[i, c, lane] + SL[j, c, lane]
+    shared = one_group if GGL[i, lane] == GGL[j, lane] else two_groups  # selects, not branches: vectorised
+    return one_scan if GL[i, lane] == GL[j, lane] else shared
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True, inline="always")
@@ -444,15 +481,25 @@ def _informs(mode, kid, kp, X, S, n):
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
-def _girard_lanes(kp, XL, SL, SLo, GL, mask, n, K, ks):
+def _girard_lanes(kp, XL, SL, SLo, SGr, GL, GGL, grouped, mask, n, K, ks):
     """Eq. (19) for the SE kernel (``kp = (sf2, 1/l^2)``): lower triangle of K[:n, :n, lane] and ks[:n, lane]
-    (the covariance of ``x_i - x_j``, :func:`_pair_cov`, between training inputs; Sigma_i against the query
-    at the origin; K_ii = sf2)."""
+    (the covariance of ``x_i - x_j``, :func:`_pair_cov` or, for ``grouped`` inputs, :func:`_pair_cov_grouped`,
+    between training inputs; Sigma_i against the query at the origin; K_ii = sf2)."""
     nlanes = XL.shape[2]
     sf2 = kp[0]
     ell2 = 1.0 / kp[1]
     for i in range(n):
         for j in range(i):
+            if grouped:
+                for lane in range(nlanes):
+                    v = _girard_se(
+                        ell2, _pair_cov_grouped(SL, SLo, SGr, GL, GGL, i, j, lane, 0),
+                        _pair_cov_grouped(SL, SLo, SGr, GL, GGL, i, j, lane, 1),
+                        _pair_cov_grouped(SL, SLo, SGr, GL, GGL, i, j, lane, 2),
+                        XL[i, 0, lane] - XL[j, 0, lane], XL[i, 1, lane] - XL[j, 1, lane],
+                    )  # fmt: skip
+                    K[i, j, lane] = sf2 * v * (mask[i, lane] * mask[j, lane])
+                continue
             for lane in range(nlanes):
                 v = _girard_se(
                     ell2, _pair_cov(SL, SLo, GL, i, j, lane, 0), _pair_cov(SL, SLo, GL, i, j, lane, 1),
@@ -482,20 +529,35 @@ def _gh_difference_value(kid, c, gz, gw, dx, dy, s00, s01, s11):
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False, fastmath=True)
-def _gh_difference_lanes(kid, kp, XL, SL, SLo, GL, mask, n, K, ks, gz, gw):
+def _gh_difference_lanes(kid, kp, XL, SL, SLo, SGr, GL, GGL, grouped, mask, n, K, ks, gz, gw):
     """Eq. (23) for a stationary kernel, as the 2-D integral over the difference of two inputs
-    (``x_i - x_j ~ N(rho_i - rho_j, .)``, its covariance :func:`_pair_cov`); K_ii = sf2 (one draw)."""
+    (``x_i - x_j ~ N(rho_i - rho_j, .)``, its covariance :func:`_pair_cov`, or :func:`_pair_cov_grouped`
+    for ``grouped`` inputs); K_ii = sf2 (one draw)."""
     nlanes = XL.shape[2]
     sf2 = kp[0]
     c = kp[1]
     for i in range(n):
         for j in range(i):
             for lane in range(nlanes):
+                if grouped:
+                    s00 = _pair_cov_grouped(SL, SLo, SGr, GL, GGL, i, j, lane, 0)
+                    s01 = _pair_cov_grouped(SL, SLo, SGr, GL, GGL, i, j, lane, 1)
+                    s11 = _pair_cov_grouped(SL, SLo, SGr, GL, GGL, i, j, lane, 2)
+                else:
+                    s00 = _pair_cov(SL, SLo, GL, i, j, lane, 0)
+                    s01 = _pair_cov(SL, SLo, GL, i, j, lane, 1)
+                    s11 = _pair_cov(SL, SLo, GL, i, j, lane, 2)
                 v = _gh_difference_value(
-                    kid, c, gz, gw, XL[i, 0, lane] - XL[j, 0, lane], XL[i, 1, lane] - XL[j, 1, lane],
-                    _pair_cov(SL, SLo, GL, i, j, lane, 0), _pair_cov(SL, SLo, GL, i, j, lane, 1),
-                    _pair_cov(SL, SLo, GL, i, j, lane, 2),
-                )  # fmt: skip
+                    kid,
+                    c,
+                    gz,
+                    gw,
+                    XL[i, 0, lane] - XL[j, 0, lane],
+                    XL[i, 1, lane] - XL[j, 1, lane],
+                    s00,
+                    s01,
+                    s11,
+                )
                 K[i, j, lane] = sf2 * v * (mask[i, lane] * mask[j, lane])
         for lane in range(nlanes):
             K[i, i, lane] = sf2 * mask[i, lane]
@@ -559,15 +621,16 @@ def _gh_nodes_lanes(kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN):
 
 
 @nb.njit(cache=True, error_model="numpy", _nrt=False)
-def _noisy_kernel_lanes(mode, kid, kp, XL, SL, SLo, GL, mask, n, K, ks, gz, gw, PH, SN):
+def _noisy_kernel_lanes(mode, kid, kp, XL, SL, SLo, SGr, GL, GGL, grouped, mask, n, K, ks, gz, gw, PH, SN):
     """The GPPOL kernel blocks of ``mode`` (INPUTS_GIRARD, INPUTS_GH_DIFFERENCE or INPUTS_GH_NODES). The
     stationary modes treat two inputs of one rigid group (same GL) as sharing its pose error
-    (:func:`_pair_cov`); the NN kernel, not invariant to a rigid motion, integrates every pair over both
-    full covariances."""
+    (:func:`_pair_cov`); ``grouped`` inputs tell the scans (GL) from the groups (GGL) and integrate two
+    scans of one group over their offsets from it (:func:`_pair_cov_grouped`). The NN kernel, not
+    invariant to a rigid motion, integrates every pair over both full covariances."""
     if mode == INPUTS_GIRARD:
-        _girard_lanes(kp, XL, SL, SLo, GL, mask, n, K, ks)
+        _girard_lanes(kp, XL, SL, SLo, SGr, GL, GGL, grouped, mask, n, K, ks)
     elif mode == INPUTS_GH_DIFFERENCE:
-        _gh_difference_lanes(kid, kp, XL, SL, SLo, GL, mask, n, K, ks, gz, gw)
+        _gh_difference_lanes(kid, kp, XL, SL, SLo, SGr, GL, GGL, grouped, mask, n, K, ks, gz, gw)
     else:
         _gh_nodes_lanes(kp, XL, SL, mask, n, K, ks, gz, gw, PH, SN)
 
@@ -607,7 +670,8 @@ class LocalGP(NamedTuple):
 
 class InputGaussians(NamedTuple):
     """The training inputs' distributions: ``mode`` INPUTS_POINTS (GPFOL: points, the arrays unused) or a
-    GPPOL mode; ``occ_moments`` (H, 9) and ``seg_moments`` (M, 24), see :func:`_gaussian_inputs`; the
+    GPPOL mode; ``occ_moments`` (H, OCC_COLUMNS) and ``seg_moments`` (M, SEG_COLUMNS), see
+    :func:`_gaussian_inputs`; the
     Gauss-Hermite rule, ``nodes`` (m, 2) standard nodes and ``weights`` (m,) summing to 1."""
 
     mode: int
@@ -619,18 +683,21 @@ class InputGaussians(NamedTuple):
     @classmethod
     def points(cls) -> InputGaussians:
         """GPFOL: deterministic training inputs."""
-        return cls(INPUTS_POINTS, np.zeros((0, 9)), np.zeros((0, 24)), np.zeros((1, 2)), np.ones(1))
+        empty = (np.zeros((0, OCC_COLUMNS)), np.zeros((0, SEG_COLUMNS)))
+        return cls(INPUTS_POINTS, *empty, np.zeros((1, 2)), np.ones(1))
 
 
 class _LaneScratch(NamedTuple):
-    """LANES local problems of one chunk (see the fast path above): inputs XL, covariances SL (and SLo of
-    the laser noise alone, scans GL), labels yL, ``mask`` (1 real point, 0 pad), sizes ``counts``; K blocks
-    KL, ksL and the solver's work arrays; GPPOL quadrature nodes PH, SN."""
+    """LANES local problems of one chunk (see the fast path above): inputs XL, covariances SL (SLo of the
+    laser noise alone, SGr within the rigid group; scans GL, groups GGL), labels yL, ``mask`` (1 real point,
+    0 pad), sizes ``counts``; K blocks KL, ksL and the solver's work arrays; GPPOL quadrature nodes PH, SN."""
 
     XL: FloatArray
     SL: FloatArray
     SLo: FloatArray
+    SGr: FloatArray
     GL: FloatArray
+    GGL: FloatArray
     yL: FloatArray
     mask: FloatArray
     counts: IntArray
@@ -647,13 +714,16 @@ class _LaneScratch(NamedTuple):
 
 
 class _SingleScratch(NamedTuple):
-    """One local problem: inputs X, covariances S (SLo of the laser noise alone, scans G), labels y (filled
-    per query, then copied to its lane), and the scalar path's K, ks and work arrays."""
+    """One local problem: inputs X, covariances S (SLo of the laser noise alone, SGr within the rigid group;
+    scans G, groups GG), labels y (filled per query, then copied to its lane), and the scalar path's K, ks
+    and work arrays."""
 
     X: FloatArray
     S: FloatArray
     SLo: FloatArray
+    SGr: FloatArray
     G: FloatArray
+    GG: FloatArray
     y: FloatArray
     K: FloatArray
     ks: FloatArray
@@ -664,11 +734,18 @@ class _SingleScratch(NamedTuple):
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
+def _grouped(inputs):
+    """Whether GPPOL's rows are grouped (:func:`_gaussian_inputs`): scans and rigid groups told apart."""
+    return inputs.occ_moments.shape[1] == OCC_COLUMNS_GROUPED
+
+
+@nb.njit(cache=True, error_model="numpy", inline="always")
 def _pad_lanes(lanes, nfill):
     """Pads of the lanes with fewer than ``nfill`` points: zero inputs and labels (identity rows in K)."""
     XL = lanes.XL
     SL = lanes.SL
     SLo = lanes.SLo
+    SGr = lanes.SGr
     yL = lanes.yL
     mask = lanes.mask
     counts = lanes.counts
@@ -679,7 +756,9 @@ def _pad_lanes(lanes, nfill):
             for c in range(3):
                 SL[i, c, lane] = 0.0
                 SLo[i, c, lane] = 0.0
+                SGr[i, c, lane] = 0.0
             lanes.GL[i, lane] = -1.0
+            lanes.GGL[i, lane] = -1.0
             yL[i, lane] = 0.0
             mask[i, lane] = 0.0
 
@@ -694,8 +773,9 @@ def _solve_lanes(gp, inputs, lanes, nfill):
         _kernel_lanes(kid, kp, lanes.XL, lanes.mask, nfill, lanes.KL, lanes.ksL, lanes.sL)
     else:
         _noisy_kernel_lanes(
-            inputs.mode, kid, kp, lanes.XL, lanes.SL, lanes.SLo, lanes.GL, lanes.mask, nfill, lanes.KL,
-            lanes.ksL, inputs.nodes, inputs.weights, lanes.PH, lanes.SN,
+            inputs.mode, kid, kp, lanes.XL, lanes.SL, lanes.SLo, lanes.SGr, lanes.GL, lanes.GGL,
+            _grouped(inputs), lanes.mask, nfill, lanes.KL, lanes.ksL, inputs.nodes, inputs.weights, lanes.PH,
+            lanes.SN,
         )  # fmt: skip
     KL = lanes.KL
     mask = lanes.mask
@@ -757,8 +837,8 @@ def _solve_alone(lane, gp, inputs, lanes, one):
         kss1 = _kernel_blocks(kid, kp, X, n, one.K, one.ks, one.s)
     else:
         kss1 = _noisy_kernel_single(
-            inputs.mode, kid, kp, XL, lanes.SL, lanes.SLo, lanes.GL, lane, n, one.K, one.ks, inputs.nodes,
-            inputs.weights,
+            inputs.mode, kid, kp, XL, lanes.SL, lanes.SLo, lanes.SGr, lanes.GL, lanes.GGL, _grouped(inputs),
+            lane, n, one.K, one.ks, inputs.nodes, inputs.weights,
         )  # fmt: skip
     return _solve_local(one.K, one.ks, kss1, y, n, gp.noise_var, gp.jitter, one.diag, one.v, one.w)
 
@@ -780,23 +860,24 @@ def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean,
     nf_c = np.zeros(n_chunk, np.int64)
     chunk_neighbours(queries, lo, hi, points, segments, k_occ, k_free, ido_c, no_c, idf_c, tf_c, nf_c)
     one = _SingleScratch(
-        np.empty((nmax, 2)), np.zeros((nmax, 3)), np.zeros((nmax, 3)), np.zeros(nmax), np.empty(nmax),
-        np.empty((nmax, nmax)), np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax),
-        np.empty(nmax),
+        np.empty((nmax, 2)), np.zeros((nmax, 3)), np.zeros((nmax, 3)), np.zeros((nmax, 3)), np.zeros(nmax),
+        np.zeros(nmax), np.empty(nmax), np.empty((nmax, nmax)), np.empty(nmax), np.empty(nmax),
+        np.empty(nmax), np.empty(nmax), np.empty(nmax),
     )  # fmt: skip
     lanes = _LaneScratch(
         np.zeros((nmax, 2, LANES)), np.zeros((nmax, 3, LANES)), np.zeros((nmax, 3, LANES)),
-        np.zeros((nmax, LANES)), np.zeros((nmax, LANES)),
+        np.zeros((nmax, 3, LANES)), np.zeros((nmax, LANES)), np.zeros((nmax, LANES)), np.zeros((nmax, LANES)),
         np.zeros((nmax, LANES)), np.zeros(LANES, np.int64), np.empty((nmax, nmax, LANES)),
         np.empty((nmax, LANES)), np.empty((nmax, LANES)), np.empty((nmax, LANES)), np.empty((nmax, LANES)),
         np.empty((nmax, LANES)), np.empty((2, LANES)), np.empty(LANES, np.bool_),
         np.empty((nmax, nodes, 2, LANES)), np.empty((nmax, nodes, LANES)),
     )  # fmt: skip
-    X, S, SLo1, G1, y = one.X, one.S, one.SLo, one.G, one.y
-    XL, SL, SLo, GL = lanes.XL, lanes.SL, lanes.SLo, lanes.GL
+    X, S, SLo1, SGr1, G1, GG1, y = one.X, one.S, one.SLo, one.SGr, one.G, one.GG, one.y
+    XL, SL, SLo, SGr, GL, GGL = lanes.XL, lanes.SL, lanes.SLo, lanes.SGr, lanes.GL, lanes.GGL
     yL, mask, counts = lanes.yL, lanes.mask, lanes.counts
     pts, seg = points.xy, segments.seg
     mode, occ_mom, seg_mom = inputs.mode, inputs.occ_moments, inputs.seg_moments
+    grouped = _grouped(inputs)
     for base in range(lo, hi, LANES):
         nl = min(LANES, hi - base)
         nfill = 0
@@ -816,7 +897,9 @@ def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean,
             if mode == INPUTS_POINTS:
                 n = _training_inputs(qx, qy, pts, ido, no, seg, idf, tf, nf, X, y)
             else:
-                n = _gaussian_inputs(qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, SLo1, G1, y)
+                n = _gaussian_inputs(
+                    qx, qy, occ_mom, ido, no, seg_mom, idf, tf, nf, X, S, SLo1, SGr1, G1, GG1, y
+                )
             if not _informs(mode, gp.kernel_id, gp.kernel_params, X, S, n):
                 continue  # an empty lane: the prior, without a solve
             if mode != INPUTS_POINTS:
@@ -825,6 +908,11 @@ def _predict_chunk(queries, lo, hi, points, segments, gp, inputs, kss, out_mean,
                         SL[i, c, lane] = S[i, c]
                         SLo[i, c, lane] = SLo1[i, c]
                     GL[i, lane] = G1[i]
+                if grouped:
+                    for i in range(n):
+                        for c in range(3):
+                            SGr[i, c, lane] = SGr1[i, c]
+                        GGL[i, lane] = GG1[i]
             counts[lane] = n
             nfill = max(nfill, n)
             for i in range(n):
@@ -879,26 +967,30 @@ def predict_batch(queries, points, segments, gp, inputs, out_mean, out_var, out_
 
 
 @nb.njit(cache=True, error_model="numpy")
-def _noisy_kernel_single(mode, kid, kp, XL, SL, SLo, GL, lane, n, K, ks, gz, gw):
-    """The GPPOL blocks of one lane of XL / SL / SLo / GL into the full K[:n, :n] and ks[:n] (the fallback
-    path); returns k(x*, x*)."""
+def _noisy_kernel_single(mode, kid, kp, XL, SL, SLo, SGr, GL, GGL, grouped, lane, n, K, ks, gz, gw):
+    """The GPPOL blocks of one lane of XL / SL / SLo / SGr / GL / GGL into the full K[:n, :n] and ks[:n]
+    (the fallback path); returns k(x*, x*)."""
     X1 = np.empty((n, 2, 1))
     S1 = np.empty((n, 3, 1))
     Lo1 = np.empty((n, 3, 1))
+    Gr1 = np.empty((n, 3, 1))
     G1 = np.empty((n, 1))
+    GG1 = np.empty((n, 1))
     m1 = np.ones((n, 1))
     for i in range(n):
         X1[i, 0, 0] = XL[i, 0, lane]
         X1[i, 1, 0] = XL[i, 1, lane]
         G1[i, 0] = GL[i, lane]
+        GG1[i, 0] = GGL[i, lane]
         for c in range(3):
             S1[i, c, 0] = SL[i, c, lane]
             Lo1[i, c, 0] = SLo[i, c, lane]
+            Gr1[i, c, 0] = SGr[i, c, lane]
     K1 = np.empty((n, n, 1))
     ks1 = np.empty((n, 1))
     nodes = gw.shape[0] if mode == INPUTS_GH_NODES else 1
     _noisy_kernel_lanes(
-        mode, kid, kp, X1, S1, Lo1, G1, m1, n, K1, ks1, gz, gw, np.empty((n, nodes, 2, 1)),
+        mode, kid, kp, X1, S1, Lo1, Gr1, G1, GG1, grouped, m1, n, K1, ks1, gz, gw, np.empty((n, nodes, 2, 1)),
         np.empty((n, nodes, 1)),
     )  # fmt: skip
     for i in range(n):

@@ -18,7 +18,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from mapping.beams import Beams
-from mapping.core import INPUTS_GH_DIFFERENCE, INPUTS_GH_NODES, INPUTS_GIRARD
+from mapping.core import (
+    INPUTS_GH_DIFFERENCE,
+    INPUTS_GH_NODES,
+    INPUTS_GIRARD,
+    OCC_COLUMNS,
+    OCC_COLUMNS_GROUPED,
+    SEG_COLUMNS,
+    SEG_COLUMNS_GROUPED,
+)
 from mapping.kernels import Kernel
 from mapping.noisy_kernels import GIRARD, InputExpectation
 from mapping.unscented import BeamMoments, UTParams, beam_moments
@@ -74,6 +82,68 @@ def input_moments(
 
 
 @dataclass(frozen=True)
+class RigidGroups:
+    """Which scans share one pose error, and how far each strays from it (N scans).
+
+    ``group_of_scan`` (N,) int64: each scan's group (in a pose graph, its keyframe: the graph moves the
+    scans between two keyframes rigidly with the first). ``offset_cov_body`` (N, 3, 3) or None: the
+    covariance of each scan's pose relative to its group's (the odometry from the keyframe to the scan;
+    zero for the keyframe itself), in the scan's own frame, so that it holds for any map of the scans
+    (:meth:`offset_cov_world`); None takes every group as exactly rigid."""
+
+    group_of_scan: NDArray[np.int64]
+    offset_cov_body: FloatArray | None = None
+
+    def __post_init__(self) -> None:
+        groups = np.asarray(self.group_of_scan, dtype=np.int64).reshape(-1)
+        object.__setattr__(self, "group_of_scan", groups)
+        if self.offset_cov_body is not None:
+            cov = np.asarray(self.offset_cov_body, dtype=np.float64)
+            if cov.shape != (groups.size, 3, 3):
+                raise ValueError(f"{groups.size} rigid groups, but offset covariances of shape {cov.shape}")
+            object.__setattr__(self, "offset_cov_body", cov)
+
+    def offset_cov_world(self, beams: Beams) -> FloatArray | None:
+        """(N, 3, 3) world-frame offset covariances of the scans as ``beams`` place them (each scan turned by
+        its base heading); None when the groups are exactly rigid."""
+        if self.offset_cov_body is None:
+            return None
+        theta = np.zeros(len(self))
+        theta[beams.scan_index] = beams.base_poses_xytheta()[:, 2]
+        c, s = np.cos(theta), np.sin(theta)
+        rot = np.zeros((len(self), 3, 3))
+        rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1], rot[:, 2, 2] = c, -s, s, c, 1.0
+        return rot @ self.offset_cov_body @ np.swapaxes(rot, 1, 2)
+
+    def __len__(self) -> int:
+        return int(self.group_of_scan.size)
+
+    def take(self, rows: NDArray[np.int64]) -> RigidGroups:
+        """The groups of the scans ``rows`` (M,), in that order."""
+        cov = None if self.offset_cov_body is None else self.offset_cov_body[rows]
+        return RigidGroups(self.group_of_scan[rows], cov)
+
+    def placed_on(self, n_scans: int, rows: NDArray[np.int64]) -> RigidGroups:
+        """The groups of ``n_scans`` other scans of which ``rows[i]`` is our scan ``i`` (another
+        trajectory's rows for our scans); a row without one of ours is a group of its own, exactly rigid."""
+        groups = np.arange(n_scans, dtype=np.int64) + (int(self.group_of_scan.max()) + 1 if len(self) else 0)
+        at = np.asarray(rows, dtype=np.int64)
+        groups[at] = self.group_of_scan
+        cov = None
+        if self.offset_cov_body is not None:
+            cov = np.zeros((n_scans, 3, 3))
+            cov[at] = self.offset_cov_body
+        return RigidGroups(groups, cov)
+
+    def same_as(self, other: RigidGroups | None) -> bool:
+        """Whether ``other`` holds the same groups and offset covariances."""
+        if other is None or not np.array_equal(self.group_of_scan, other.group_of_scan):
+            return False
+        a, b = self.offset_cov_body, other.offset_cov_body
+        return (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
+
+
+@dataclass(frozen=True)
 class GaussianInputs:
     """What makes a map GPPOL: the per-beam input Gaussians and how kernels are integrated over them.
 
@@ -83,9 +153,11 @@ class GaussianInputs:
     of one scan share its pose error (SPEC section 5): a rigid motion keeps the distance between two of
     its points, so for a stationary isotropic kernel their expected kernel is the one over the laser noise
     alone; two points of different scans, whose pose errors are taken as independent, integrate over both
-    full covariances (eq. 17); the test point is deterministic. ``rigid_groups`` (N,) widens "one scan" to
-    a group of scans that share one pose error, indexed like the covariances by ``beams.scan_index`` (in a
-    pose graph the scans of one keyframe: they move with it rigidly); None: each scan is its own group."""
+    full covariances (eq. 17); the test point is deterministic. ``rigid_groups`` (N,), indexed like the
+    covariances by ``beams.scan_index``, groups scans that share one pose error (in a pose graph the scans
+    of one keyframe: they move with it rigidly); two points of different scans of one group integrate over
+    ``group_moments`` / ``group_free_moments`` (the laser noise and each scan's offset from the group: the
+    odometry from the keyframe; None: the laser noise alone). None: each scan is its own group."""
 
     moments: BeamMoments
     expectation: InputExpectation = DEFAULT_EXPECTATION
@@ -93,6 +165,8 @@ class GaussianInputs:
     local_moments: BeamMoments | None = None  # the laser noise alone (same-scan pairs)
     local_free_moments: BeamMoments | None = None
     rigid_groups: NDArray[np.int64] | None = None
+    group_moments: BeamMoments | None = None  # the laser noise and the offset from the group (group pairs)
+    group_free_moments: BeamMoments | None = None
 
     def free(self) -> BeamMoments:
         """The coefficients of the free points (default: those of the endpoints, as Algorithm 3)."""
@@ -108,6 +182,16 @@ class GaussianInputs:
             return self.local_free_moments
         return self.free() if self.local_moments is None else self.local_moments
 
+    def group(self) -> BeamMoments:
+        """The endpoints' coefficients within their rigid group (default: the laser noise alone)."""
+        return self.local() if self.group_moments is None else self.group_moments
+
+    def group_free(self) -> BeamMoments:
+        """The free points' coefficients within their rigid group (default: the laser noise alone)."""
+        if self.group_free_moments is not None:
+            return self.group_free_moments
+        return self.local_free() if self.group_moments is None else self.group_moments
+
     def core_mode(self, kernel: Kernel) -> int:
         """The GPPOL mode of :func:`mapping.core.predict_batch` for ``kernel``."""
         self.expectation.check(kernel)
@@ -121,15 +205,18 @@ class GaussianInputs:
         return np.ascontiguousarray(z), np.ascontiguousarray(w)
 
     def core_arrays(self, beams: Beams, hit_beam: NDArray[np.int64]) -> tuple[FloatArray, FloatArray]:
-        """``occ_mom`` (H, 9): mean, packed covariance, packed covariance of the laser noise alone and scan
-        index of the endpoints ``hit_beam`` (in the point index's order); ``seg_mom`` (M, 24): per beam
-        ``a, b, C0, C1, C2``, the length of its free part, the laser noise's ``C0, C1, C2`` and the scan's
-        rigid group (:func:`mapping.core._gaussian_inputs`)."""
-        mo, lo = self.moments, self.local()
-        fm, fl = self.free(), self.local_free()
+        """``occ_mom`` (H, OCC_COLUMNS): mean, packed covariance, packed covariance of the laser noise alone
+        and rigid group of the endpoints ``hit_beam`` (in the point index's order); ``seg_mom``
+        (M, SEG_COLUMNS): per beam ``a, b, C0, C1, C2``, the length of its free part, the laser noise's
+        ``C0, C1, C2`` and the scan's rigid group (:func:`mapping.core._gaussian_inputs`). With
+        ``group_moments`` the rows are grouped (OCC_COLUMNS_GROUPED, SEG_COLUMNS_GROUPED): the scan in place
+        of the group, then the covariance within the group and the group."""
+        mo, lo, go = self.moments, self.local(), self.group()
+        fm, fl, fg = self.free(), self.local_free(), self.group_free()
+        grouped = self.group_moments is not None and self.rigid_groups is not None
         hits = np.ascontiguousarray(hit_beam, dtype=np.int64)
-        occ = np.empty((hits.size, 9))
-        seg = np.empty((len(beams), 24))
+        occ = np.empty((hits.size, OCC_COLUMNS_GROUPED if grouped else OCC_COLUMNS))
+        seg = np.empty((len(beams), SEG_COLUMNS_GROUPED if grouped else SEG_COLUMNS))
         group = beams.scan_index
         if self.rigid_groups is not None:
             groups = np.asarray(self.rigid_groups, dtype=np.int64)
@@ -142,11 +229,16 @@ class GaussianInputs:
         _pack_inputs(
             *(np.ascontiguousarray(m.a) for m in (mo, fm)),
             *(np.ascontiguousarray(m.b) for m in (mo, fm)),
-            *(np.ascontiguousarray(getattr(m, c)) for m in (mo, lo, fm, fl) for c in ("c0", "c1", "c2")),
+            *(
+                np.ascontiguousarray(getattr(m, c))
+                for m in (mo, lo, go, fm, fl, fg)
+                for c in ("c0", "c1", "c2")
+            ),
             np.ascontiguousarray(beams.ranges_m, dtype=np.float64),
             np.ascontiguousarray(beams.origins_xy_m, dtype=np.float64),
             np.ascontiguousarray(beams.free_ends_xy_m, dtype=np.float64),
-            np.ascontiguousarray(group),
+            np.ascontiguousarray(beams.scan_index if grouped else group, dtype=np.int64),
+            np.ascontiguousarray(group, dtype=np.int64),
             hits,
             occ,
             seg,
@@ -156,14 +248,15 @@ class GaussianInputs:
 
 @nb.njit(cache=True, parallel=True)
 def _pack_inputs(
-    a, fa, b, fb, c0, c1, c2, lc0, lc1, lc2, fc0, fc1, fc2, flc0, flc1, flc2, ranges, origins, free_ends,
-    scan, hits, occ, seg,
+    a, fa, b, fb, c0, c1, c2, lc0, lc1, lc2, gc0, gc1, gc2, fc0, fc1, fc2, flc0, flc1, flc2, fgc0, fgc1,
+    fgc2, ranges, origins, free_ends, scan, group, hits, occ, seg,
 ):  # fmt: skip
-    """The rows of :meth:`GaussianInputs.core_arrays`: ``occ`` (H, 9) of the endpoints ``hits`` (the mean
+    """The rows of :meth:`GaussianInputs.core_arrays`: ``occ`` of the endpoints ``hits`` (the mean
     ``a + d b`` and the packed covariances ``C0 + d (C1 + d C2)`` at their ranges, full and of the laser
-    noise alone, and the scan's rigid group), ``seg`` (M, 24) of every beam (the free points'
-    ``a, b, C0, C1, C2``, the free part's length, the laser noise's ``C0, C1, C2``, the scan's rigid
-    group)."""
+    noise alone, and ``scan``), ``seg`` of every beam (the free points' ``a, b, C0, C1, C2``, the free
+    part's length, the laser noise's ``C0, C1, C2``, ``scan``); grouped rows (wider) add the within-group
+    covariance and ``group``."""
+    grouped = occ.shape[1] == OCC_COLUMNS_GROUPED
     for h in nb.prange(hits.shape[0]):
         j = hits[h]
         d = ranges[j]
@@ -173,6 +266,10 @@ def _pack_inputs(
             occ[h, 2 + c] = c0[j, c] + d * (c1[j, c] + d * c2[j, c])
             occ[h, 5 + c] = lc0[j, c] + d * (lc1[j, c] + d * lc2[j, c])
         occ[h, 8] = scan[j]
+        if grouped:
+            for c in range(3):
+                occ[h, 9 + c] = gc0[j, c] + d * (gc1[j, c] + d * gc2[j, c])
+            occ[h, 12] = group[j]
     for j in nb.prange(seg.shape[0]):
         row = seg[j]
         row[0] = fa[j, 0]
@@ -188,3 +285,9 @@ def _pack_inputs(
             row[20 + c] = flc2[j, c]
         row[13] = math.hypot(free_ends[j, 0] - origins[j, 0], free_ends[j, 1] - origins[j, 1])
         row[23] = scan[j]
+        if grouped:
+            for c in range(3):
+                row[24 + c] = fgc0[j, c]
+                row[27 + c] = fgc1[j, c]
+                row[30 + c] = fgc2[j, c]
+            row[33] = group[j]

@@ -24,6 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from mapping.build import Bounds, MapBuilder
 from mapping.exports import MapLayers, read_layers_npz
 from mapping.gpmap import GPOccupancyMap
+from mapping.gppol import RigidGroups
 from mapping.train import GPParams, ParamsFileError
 from pipeline.artifacts import (
     COVARIANCES_NPZ,
@@ -193,9 +194,10 @@ class RunView:
             return covariances_at(stamps, cov_stamps, values)
 
     @cached_property
-    def rigid_groups(self) -> NDArray[np.int64] | None:
-        """(N,) the scans this run's GPPOL treated as sharing one pose error (``mapping.gppol.rigid_groups``:
-        each scan's keyframe, :func:`pipeline.artifacts.mapper_rigid_groups`; None: each scan alone)."""
+    def rigid_groups(self) -> RigidGroups | None:
+        """The scans this run's GPPOL treated as sharing one pose error (``mapping.gppol.rigid_groups``: each
+        scan's keyframe and its offset's covariance, :func:`pipeline.artifacts.mapper_rigid_groups`; None:
+        each scan alone)."""
         path = self.run_dir / TRAJECTORY_DIR / COVARIANCES_NPZ
         mode = self.config.mapping.gppol.rigid_groups
         return read_rigid_groups(path, len(self.scans.scans.stamps_ns), mode)

@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from datasets.files import atomic_output
 from datasets.types import ScanSequence
+from mapping.gppol import RigidGroups
 from pipeline.errors import PipelineError
 from slam.keyframes import keyframe_of_scan
 from slam.result import SlamResult
@@ -118,6 +119,11 @@ def write_trajectories(folder: Path, slam: SlamResult) -> dict[str, Path]:
         scan_after=slam.cov_after_xytheta,
         scan_relative_before=slam.relative_cov_before_xytheta,
         scan_relative_after=slam.relative_cov_after_xytheta,
+        **(
+            {"scan_keyframe_offset_body": slam.keyframe_offset_cov_body}
+            if slam.keyframe_offset_cov_body is not None
+            else {}
+        ),
         frame="world",
         order="x y theta",
     )
@@ -159,21 +165,24 @@ def rigid_groups_label(mode: str) -> str:
     return ", shared within keyframes" if _keyframe_groups(mode) else ""
 
 
-def mapper_rigid_groups(slam: SlamResult, mode: str) -> NDArray[np.int64] | None:
-    """GPPOL's rigid groups (:class:`mapping.gppol.GaussianInputs`) as ``mapping.gppol.rigid_groups``
-    (``mode``) names them: None for ``"scan"`` (each scan alone), the (N,) keyframe of every scan for
-    ``"keyframe"``. The pose graph moves the scans between two keyframes rigidly with the first (their
-    offsets are the odometry's), so as the graph sees them they share its pose error: two points of one
-    keyframe are placed relative to each other up to the laser noise and the odometry between them."""
+def mapper_rigid_groups(slam: SlamResult, mode: str) -> RigidGroups | None:
+    """GPPOL's rigid groups (:class:`mapping.gppol.RigidGroups`) as ``mapping.gppol.rigid_groups``
+    (``mode``) names them: None for ``"scan"`` (each scan alone), the keyframe of every scan and its
+    offset's covariance for ``"keyframe"``. The pose graph moves the scans between two keyframes rigidly
+    with the first (their offsets are the odometry's), so as the graph sees them they share its pose error:
+    two points of one keyframe are placed relative to each other up to the laser noise and the odometry
+    between them."""
     if not _keyframe_groups(mode):
         return None
-    return keyframe_of_scan(np.asarray(slam.keyframe_scans, dtype=np.int64), len(slam.stamps_ns))
+    groups = keyframe_of_scan(np.asarray(slam.keyframe_scans, dtype=np.int64), len(slam.stamps_ns))
+    return RigidGroups(groups, slam.keyframe_offset_cov_body)
 
 
-def read_rigid_groups(path: Path, n_scans: int, mode: str) -> NDArray[np.int64] | None:
+def read_rigid_groups(path: Path, n_scans: int, mode: str) -> RigidGroups | None:
     """:func:`mapper_rigid_groups` of the ``n_scans`` scans of a run's ``covariances.npz``; None (each scan
     its own group) for ``mode`` ``"scan"`` and when the file names no keyframes of these scans (another
-    tool's file)."""
+    tool's file). A file without the offsets' covariances (``scan_keyframe_offset_body``) gives exactly
+    rigid groups."""
     if not _keyframe_groups(mode):
         return None
     try:
@@ -182,7 +191,11 @@ def read_rigid_groups(path: Path, n_scans: int, mode: str) -> NDArray[np.int64] 
         return None
     if keyframes.max() >= n_scans or np.any(np.diff(keyframes) <= 0):
         return None
-    return keyframe_of_scan(keyframes, n_scans)
+    key = "scan_keyframe_offset_body"
+    offsets = _from_covariance_archive(path, lambda z: np.asarray(z[key], np.float64) if key in z else None)
+    if offsets is not None and (offsets.shape != (n_scans, 3, 3) or not np.isfinite(offsets).all()):
+        raise TrajectoryFormatError(f"{path}: '{key}' is not {n_scans} finite 3x3 covariances")
+    return RigidGroups(keyframe_of_scan(keyframes, n_scans), offsets)
 
 
 def read_mapper_covariances(path: Path, which: str, mode: str) -> tuple[NDArray[np.int64], NDArray] | None:

@@ -55,6 +55,7 @@ from mapping.evaluation import (
     is_carmen_180,
     observed_points,
 )
+from mapping.gppol import RigidGroups
 from mapping.metrics import log_loss, roc_auc
 from pipeline.artifacts import mapper_covariances, mapper_rigid_groups, rigid_groups_label
 from pipeline.config import load_config
@@ -95,9 +96,9 @@ def mapping_poses(
     progress: Progress | None = None,
     pose_covariances: str = "relative",
     rigid_groups: str = "scan",
-) -> tuple[np.ndarray, str, np.ndarray | None, np.ndarray | None]:
+) -> tuple[np.ndarray, str, np.ndarray | None, RigidGroups | None]:
     """(N, 3) base poses to map with, where they come from, their (N, 3, 3) world-frame covariances and
-    (N,) rigid groups: the reference poses when the recording has them (``"reference"``, taken as exact:
+    rigid groups: the reference poses when the recording has them (``"reference"``, taken as exact:
     None, None), else the optimised trajectory of the SLAM stage, the covariances ``pose_covariances`` names
     (``mapping.gppol.pose_covariances``, :func:`pipeline.artifacts.mapper_covariances`; ``"slam"``, SPEC
     section 6) and the rigid groups ``rigid_groups`` names (``mapping.gppol.rigid_groups``,
@@ -201,7 +202,7 @@ def _map_and_score(
     sort: bool,
     observed: np.ndarray | None = None,
     breakdown: dict[str, np.ndarray] | None = None,
-    rigid_groups: np.ndarray | None = None,
+    rigid_groups: RigidGroups | None = None,
 ) -> dict[str, Any]:
     """Train and query GPPOL and GPFOL (``cov``, ``rigid_groups``: :meth:`mapping.build.MapBuilder.gp_map`),
     build the grid, score the three; times and parameters. With
@@ -302,7 +303,7 @@ def evaluate_holdout(
     block_scans: int | None = None,
     mappable: np.ndarray | None = None,
     breakdown: bool = False,
-    rigid_groups: np.ndarray | None = None,
+    rigid_groups: RigidGroups | None = None,
 ) -> dict[str, Any]:
     """The hold-out protocol of SPEC section 6 for GPPOL, GPFOL and the grid, one entry per seed.
 
@@ -313,7 +314,7 @@ def evaluate_holdout(
     ``block_scans``: scans per held-out block (default :func:`holdout_block_scans`: 40, 10 under 400
     scans). ``mappable`` (N,) bool: the scans that may be mapped (default all; e.g. those with a SLAM pose),
     the held-out ones never are. ``breakdown``: each AUC also by the test points' distance from their laser
-    and by the mapped endpoints near them (:func:`breakdown_values`). ``rigid_groups`` (N,): the scans that
+    and by the mapped endpoints near them (:func:`breakdown_values`). ``rigid_groups``: the scans that
     share one pose error under ``cov`` (:meth:`mapping.build.MapBuilder.gp_map`; not with
     ``perturb_poses``, whose errors are drawn per scan). Returns ``per_seed`` and ``block_scans``."""
     scans = rec.scans
@@ -385,7 +386,7 @@ def evaluate_ground_truth(
     cov: np.ndarray | None = None,
     perturb_poses: tuple[float, float] | None = None,
     every: int = 1,
-    rigid_groups: np.ndarray | None = None,
+    rigid_groups: RigidGroups | None = None,
 ) -> dict[str, Any]:
     """Score the cells of the ground-truth raster ``gt`` (read from ``gt_path``; SPEC section 6, simulated
     worlds; ``every`` > 1 scores every ``every``-th row and column only, for quick checks).

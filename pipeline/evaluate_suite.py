@@ -60,6 +60,7 @@ from datasets.registry import guess_format, open_dataset
 from datasets.types import Recording
 from mapping.config import MappingConfig
 from mapping.evaluation import HOLDOUT_BLOCK, holdout_block_scans
+from mapping.gppol import RigidGroups
 from pipeline.artifacts import mapper_covariances, mapper_rigid_groups, rigid_groups_label
 from pipeline.config import Config, load_config
 from pipeline.errors import PipelineError
@@ -283,14 +284,12 @@ def slam_poses_on_reference(
 
 
 def rigid_groups_on_reference(
-    n_scans: int, rows: NDArray[np.int64], slam_rigid_groups: NDArray[np.int64]
-) -> NDArray[np.int64]:
-    """(N,) rigid groups of the reference's ``n_scans`` scans: row ``rows[i]`` takes the (M,)
-    ``slam_rigid_groups[i]`` of our scan matched to it; a row without one, a group of its own."""
-    ours = np.asarray(slam_rigid_groups, dtype=np.int64)
-    groups = np.arange(n_scans, dtype=np.int64) + (int(ours.max()) + 1 if ours.size else 0)
-    groups[np.asarray(rows, dtype=np.int64)] = ours
-    return groups
+    n_scans: int, rows: NDArray[np.int64], slam_rigid_groups: RigidGroups
+) -> RigidGroups:
+    """Rigid groups of the reference's ``n_scans`` scans: row ``rows[i]`` takes the group (and offset) of
+    our scan ``i`` matched to it (``slam_rigid_groups`` of M scans); a row without one, a group of its
+    own."""
+    return slam_rigid_groups.placed_on(n_scans, rows)
 
 
 def evaluate_slam_poses(
@@ -305,7 +304,7 @@ def evaluate_slam_poses(
     progress: Progress,
     block_scans: int | None = None,
     test_points_from: Literal["reference", "slam"] = "reference",
-    slam_rigid_groups: NDArray[np.int64] | None = None,
+    slam_rigid_groups: RigidGroups | None = None,
 ) -> dict[str, Any]:
     """The hold-out protocol on our SLAM's poses (SPEC section 6, "Maps from our own SLAM"): the training
     scans mapped at our aligned poses (:func:`slam_poses_on_reference`; GPPOL with our rotated marginals;
@@ -318,7 +317,7 @@ def evaluate_slam_poses(
     from, both placed by our SLAM -- the protocol the reference-pose map is scored by, so the two compare
     the trajectories' consistency without taking either as the truth.
 
-    ``slam_rigid_groups`` (M,): the rigid group of each of our poses (:meth:`mapping.build.MapBuilder.gp_map`;
+    ``slam_rigid_groups``: the rigid groups of our M poses (:meth:`mapping.build.MapBuilder.gp_map`;
     None: each scan alone)."""
     if test_points_from not in ("reference", "slam"):
         raise ValueError(f"test_points_from must be 'reference' or 'slam', got {test_points_from!r}")
@@ -574,7 +573,7 @@ def _evaluate(
     ours = np.asarray(result.poses_after_xytheta)[scans]
     our_cov = None if slam_cov is None else np.asarray(slam_cov)[scans]
     slam_groups = mapper_rigid_groups(result, cfg.gppol.rigid_groups)
-    our_groups = None if slam_groups is None else slam_groups[scans]
+    our_groups = None if slam_groups is None else slam_groups.take(scans)
     maps: dict[str, Any] = {"reference_poses": None, "slam_poses": None, "slam_poses_own_test_points": None}
     row["maps"] = maps
     if gt is not None:

@@ -216,7 +216,7 @@ def remap_run(
         and tuple(map_bounds) == run_bounds
         and cfg == run_config.mapping
         and config.scale.tile_cells == run_config.scale.tile_cells
-        and np.array_equal(new_groups, run_groups)  # True for None and None
+        and (new_groups is run_groups or (new_groups is not None and new_groups.same_as(run_groups)))
     )
     laser = stored.laser_in_base_xytheta
     builder = MapBuilder.from_config(cfg)

@@ -27,6 +27,7 @@ from mapping.beams import beams_from_scan_sequence
 from mapping.build import Bounds, MapBuilder, check_mapper
 from mapping.evaluation import ground_truth_auc_over, pass_masks, rendered_ground_truth_auc
 from mapping.exports import MapLayers
+from mapping.gppol import RigidGroups
 from mapping.placement import with_placement
 from mapping.tiling import IncrementalMap, TileRenderer, render_serial
 from mapping.train import GPParams
@@ -103,7 +104,7 @@ def build_maps(
     selected: np.ndarray | None = None,
     renderer: TileRenderer = render_serial,
     render_stats: dict[str, dict[str, float]] | None = None,
-    rigid_groups: np.ndarray | None = None,
+    rigid_groups: RigidGroups | None = None,
 ) -> tuple[dict[str, MapLayers], dict[str, IncrementalMap], GPParams, Bounds]:
     """GP maps for each named trajectory ``{name: (base poses (N,3), covariances (N,3,3) | None)}``.
 
@@ -115,7 +116,7 @@ def build_maps(
     Returns the layers, the tiled maps (:class:`mapping.tiling.IncrementalMap`, ready for incremental
     updates), the parameters and the bounds. ``render_stats``, when given, receives per map rendered whole
     the cells solved and those answered with the prior beyond the kernel's reach, with their seconds
-    (:attr:`mapping.gpmap.GPOccupancyMap.last_query_stats`). ``rigid_groups`` (N,): the scans that share
+    (:attr:`mapping.gpmap.GPOccupancyMap.last_query_stats`). ``rigid_groups``: the scans that share
     one pose error in every GPPOL map (:func:`pipeline.artifacts.mapper_rigid_groups`; None: each scan alone).
     """
     cfg = config.mapping

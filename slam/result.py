@@ -58,6 +58,9 @@ class SlamResult:
     loop_closures_dropped: int = 0  # accepted by verification, then dropped by the robust back end
     fault_injection: dict | None = None  # evaluate slam --inject-false-closures: injected / kept
     wheel_odometry: str = "as given"  # where the wheel odometry came from (:func:`wheel_odometry`)
+    # (N, 3, 3) each scan's pose relative to its keyframe's (the odometry between them; zero for a
+    # keyframe), in the scan's frame: how far it strays from the keyframe it moves with (None: not known)
+    keyframe_offset_cov_body: FloatArray | None = None
     # 3D inputs only (:mod:`slam.system3d`): (N, 4, 4) poses, (N, 6, 6) and (K, 6, 6) world-frame
     # (x, y, z, rx, ry, rz) covariances; the 2D fields above are their SE(2) projections
     poses_before_se3: FloatArray | None = None

@@ -224,6 +224,7 @@ def run_slam(
         timings_s=timings,
         loop_closures_dropped=len(dropped),
         fault_injection=fault_report,
+        keyframe_offset_cov_body=per_scan["offset_body"],
     )
 
 
@@ -463,9 +464,10 @@ def per_scan_covariances(
     keyframe_covs_body: dict[str, FloatArray],
     gc: GraphConfig,
 ) -> dict[str, FloatArray]:
-    """Every scan: its keyframe's pose composed with the odometry offset (``poses_after`` (N, 3)), and each
-    keyframe covariance of ``keyframe_covs_body`` (name -> (K, 3, 3) body frame; ``*_before`` at the
-    odometry poses, the others after loop closure) composed with the offset's uncertainty, world frame."""
+    """Every scan: its keyframe's pose composed with the odometry offset (``poses_after`` (N, 3)), the
+    offset's own covariance (``offset_body`` (N, 3, 3), the scan's frame), and each keyframe covariance of
+    ``keyframe_covs_body`` (name -> (K, 3, 3) body frame; ``*_before`` at the odometry poses, the others
+    after loop closure) composed with the offset's uncertainty, world frame."""
     poses = odo.poses_xytheta
     kf = chain.scans
     owner, offset = keyframe_offsets(kf, poses)
@@ -475,7 +477,7 @@ def per_scan_covariances(
     )
     off_cov[anchor == np.arange(len(poses))] = 0.0
     poses_after = se2.compose(batch.poses_xytheta[owner], offset)
-    out = {"poses_after": poses_after}
+    out = {"poses_after": poses_after, "offset_body": _sym(off_cov)}
     for name, cov_body in keyframe_covs_body.items():
         at = poses if name.endswith("_before") else poses_after
         out[name] = _sym(se2.rotate_cov_to_world(at, se2.compose_cov_body(cov_body[owner], offset, off_cov)))

@@ -257,10 +257,17 @@ def test_own_test_points_come_from_the_slam_poses() -> None:
 
 
 def test_rigid_groups_follow_our_scans_onto_the_reference_rows() -> None:
-    """Each reference row takes the rigid group of our scan matched to it; a row no scan of ours matches is
-    a group of its own, apart from every group of ours."""
+    """Each reference row takes the rigid group (and the offset from it) of our scan matched to it; a row
+    no scan of ours matches is a group of its own, apart from every group of ours, and exactly rigid."""
+    from mapping.gppol import RigidGroups
+
     rows = np.array([0, 2, 3, 5])
-    got = rigid_groups_on_reference(7, rows, np.array([0, 0, 1, 1]))
+    offsets = np.arange(1, 5)[:, None, None] * np.eye(3)
+    placed = rigid_groups_on_reference(7, rows, RigidGroups(np.array([0, 0, 1, 1]), offsets))
+    got = placed.group_of_scan
     np.testing.assert_array_equal(got[rows], [0, 0, 1, 1])
     alone = np.delete(got, rows)
     assert len(np.unique(alone)) == 3 and not np.isin(alone, [0, 1]).any()
+    np.testing.assert_array_equal(placed.offset_cov_body[rows], offsets)
+    assert not np.delete(placed.offset_cov_body, rows, axis=0).any()
+    assert rigid_groups_on_reference(7, rows, RigidGroups(np.array([0, 0, 1, 1]))).offset_cov_body is None

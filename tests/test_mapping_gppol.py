@@ -12,7 +12,7 @@ from datasets.registry import open_dataset
 from mapping.config import MappingConfig
 from mapping.core import NEGLIGIBLE_KERNEL
 from mapping.gpmap import GPOccupancyMap
-from mapping.gppol import GaussianInputs, SensorNoise, input_moments
+from mapping.gppol import GaussianInputs, RigidGroups, SensorNoise, input_moments
 from mapping.kernels import make_kernel
 from mapping.noisy_kernels import GAUSS_HERMITE, GIRARD, SIGMA_POINTS, InputExpectation, sigma_point_rule_2d
 from mapping.train import GPParams
@@ -122,8 +122,8 @@ def test_two_points_of_one_scan_keep_their_kernel_two_of_two_scans_integrate_ove
     z, w = InputExpectation(GAUSS_HERMITE, 8).rule()
     core_mode = INPUTS_GIRARD if mode == "girard" else INPUTS_GH_DIFFERENCE
     kp = np.array([sf2, 1.0 / ell**2])
-    _noisy_kernel_lanes(core_mode, KERNEL_SE, kp, X, S, np.zeros_like(S), G, np.ones((3, 32)), 3, K, ks,
-                        np.ascontiguousarray(z), np.ascontiguousarray(w), np.zeros((3, 1, 2, 32)),
+    _noisy_kernel_lanes(core_mode, KERNEL_SE, kp, X, S, np.zeros_like(S), S, G, G, False, np.ones((3, 32)), 3,
+                        K, ks, np.ascontiguousarray(z), np.ascontiguousarray(w), np.zeros((3, 1, 2, 32)),
                         np.zeros((3, 1, 32)))  # fmt: skip
     assert K[1, 0, 0] == pytest.approx(k(p_a[0] - p_a[1]), rel=1e-6)  # within one scan: the kernel itself
     assert K[1, 0, 0] == pytest.approx(within_mc, rel=1e-9)  # ... which every draw gives
@@ -133,10 +133,58 @@ def test_two_points_of_one_scan_keep_their_kernel_two_of_two_scans_integrate_ove
     assert K[2, 1, 0] == pytest.approx(exact, rel=1e-5 if mode == "girard" else 1e-3)
     # taken as independent (eq. 17 for every pair), the within-scan entry would shrink instead
     K2 = np.zeros_like(K)
-    _noisy_kernel_lanes(core_mode, KERNEL_SE, kp, X, S, S, G * 0 + np.arange(3)[:, None], np.ones((3, 32)),
-                        3, K2, ks, np.ascontiguousarray(z), np.ascontiguousarray(w), np.zeros((3, 1, 2, 32)),
+    alone = G * 0 + np.arange(3)[:, None]
+    _noisy_kernel_lanes(core_mode, KERNEL_SE, kp, X, S, S, S, alone, alone, False, np.ones((3, 32)), 3, K2,
+                        ks, np.ascontiguousarray(z), np.ascontiguousarray(w), np.zeros((3, 1, 2, 32)),
                         np.zeros((3, 1, 32)))  # fmt: skip
     assert K2[1, 0, 0] < 0.95 * within_mc  # 0.91 of it here
+
+
+@pytest.mark.parametrize("mode", ["girard", "gh_difference"])
+def test_two_scans_of_one_rigid_group_integrate_over_their_offsets_alone(mode) -> None:
+    """Monte Carlo over a rigid group (a keyframe's error, translation and heading, moves scans A and B
+    alike; each also strays from it by its own offset error) and a scan C of another group: E[k] between
+    points of A and B is the kernel integrated over the two offsets' covariances alone (exact for
+    translations); between B and C over both full covariances; within A the kernel itself."""
+    from mapping.core import INPUTS_GH_DIFFERENCE, INPUTS_GIRARD, KERNEL_SE, _noisy_kernel_lanes
+    from mapping.noisy_kernels import girard_se
+
+    rng = np.random.default_rng(1)
+    ell, sf2 = 0.5, 0.8
+    group_sd, offset_sd = np.array([0.4, 0.3]), np.array([0.15, 0.1])
+    pts = np.array([[1.0, 0.2], [1.3, 0.9], [1.6, 0.4], [1.2, -0.3]])  # A, A, B, C (group frame)
+    draws = 400_000
+    th = rng.normal(size=draws) * 0.1  # the group's heading error: keeps distances within the group
+    rot = np.stack([np.cos(th), -np.sin(th), np.sin(th), np.cos(th)], -1).reshape(-1, 2, 2)
+    e_group = rng.normal(size=(draws, 2)) * group_sd
+    e_a, e_b = (rng.normal(size=(draws, 2)) * offset_sd for _ in range(2))
+    a1 = rot @ pts[1] + e_group + e_a
+    b0 = rot @ pts[2] + e_group + e_b
+    c0 = pts[3] + rng.normal(size=(draws, 2)) * np.sqrt(group_sd**2 + offset_sd**2)
+    k = lambda d: sf2 * np.exp(-0.5 * np.sum(d * d, axis=-1) / ell**2)  # noqa: E731
+    X = np.zeros((4, 2, 32))
+    X[:, :, 0] = pts
+    S, S_group = np.zeros((4, 3, 32)), np.zeros((4, 3, 32))
+    S[:, 0, 0], S[:, 2, 0] = group_sd**2 + offset_sd**2  # full: the group's and the offset's translation
+    S_group[:, 0, 0], S_group[:, 2, 0] = offset_sd**2  # within the group: the offset's alone
+    scan, group = np.zeros((4, 32)), np.zeros((4, 32))
+    scan[:, 0], group[:, 0] = [0, 0, 1, 2], [0, 0, 0, 1]
+    K, ks = np.zeros((4, 4, 32)), np.zeros((4, 32))
+    z, w = InputExpectation(GAUSS_HERMITE, 8).rule()
+    core_mode = INPUTS_GIRARD if mode == "girard" else INPUTS_GH_DIFFERENCE
+    _noisy_kernel_lanes(core_mode, KERNEL_SE, np.array([sf2, 1.0 / ell**2]), X, S, np.zeros_like(S), S_group,
+                        scan, group, True, np.ones((4, 32)), 4, K, ks, np.ascontiguousarray(z),
+                        np.ascontiguousarray(w), np.zeros((4, 1, 2, 32)), np.zeros((4, 1, 32)))  # fmt: skip
+    tol = 1e-5 if mode == "girard" else 3e-3  # Gauss-Hermite of level 8 over the wider spread
+    se = make_kernel("se", (np.sqrt(sf2), ell))
+    assert K[1, 0, 0] == pytest.approx(k(pts[0] - pts[1]), rel=1e-6)  # one scan
+    assert K[2, 1, 0] == pytest.approx(k(a1 - b0).mean(), rel=0.01)  # one group, two scans
+    within = girard_se(se, (pts[2] - pts[1])[None], np.diag(2 * offset_sd**2)[None])[0]
+    assert K[2, 1, 0] == pytest.approx(within, rel=tol)
+    assert K[3, 2, 0] == pytest.approx(k(b0 - c0).mean(), rel=0.01)  # two groups
+    across = girard_se(se, (pts[3] - pts[2])[None], np.diag(2 * (group_sd**2 + offset_sd**2))[None])[0]
+    assert K[3, 2, 0] == pytest.approx(across, rel=tol)
+    assert k(a1 - b0).mean() > 1.2 * across  # the shared error does not separate A from B
 
 
 def test_a_query_whose_neighbours_all_have_negligible_k_star_reads_the_prior_unsolved(intel) -> None:
@@ -298,7 +346,9 @@ def test_two_platform_world_gppol_with_the_papers_nn_kernel_beats_gpfol_on_every
 def test_a_rigid_group_is_mapped_as_one_scan(intel) -> None:
     """Scans of one rigid group share one pose error: their points are placed relative to each other up to
     the laser noise alone, exactly as the points of one scan (the map equals the one whose grouped scans
-    are merged into one), and differently from independent scans."""
+    are merged into one), and differently from independent scans. With offsets from the group, two scans of
+    it integrate over the offsets instead: offsets as large as the whole covariance give the independent
+    scans' map, and smaller ones a third map."""
     rec, poses = intel
     rows = np.arange(40, 70)
     beams = em.make_beams(rec, poses, rows, MappingConfig())
@@ -307,11 +357,12 @@ def test_a_rigid_group_is_mapped_as_one_scan(intel) -> None:
     noise = [SensorNoise(1e-4, 3e-6)]
     params = GPParams(make_kernel("se", (0.9, 0.3)), 0.1, 8.0, 0.3, {"inputs": {}})
 
-    def gppol(b, rigid_groups):
+    def gppol(b, rigid_groups, offset_cov=None):
         inputs = GaussianInputs(
             input_moments(b, cov, noise),
             local_moments=input_moments(b, None, noise),
             rigid_groups=rigid_groups,
+            group_moments=None if offset_cov is None else input_moments(b, offset_cov, noise),
         )
         return GPOccupancyMap(b, params, 15, 15, inputs=inputs)
 
@@ -323,9 +374,25 @@ def test_a_rigid_group_is_mapped_as_one_scan(intel) -> None:
     np.testing.assert_array_equal(grouped.mean, one_scan.mean)
     np.testing.assert_array_equal(grouped.variance, one_scan.variance)
     assert np.abs(grouped.mean - alone.mean).max() > 1e-3
+    whole_offsets = gppol(beams, groups, cov).query(q)
+    np.testing.assert_array_equal(whole_offsets.mean, alone.mean)
+    np.testing.assert_array_equal(whole_offsets.variance, alone.variance)
+    small_offsets = gppol(beams, groups, 0.2 * cov).query(q)
+    assert min(np.abs(small_offsets.mean - m).max() for m in (grouped.mean, alone.mean)) > 1e-4
     occ, seg = gppol(beams, groups).inputs.core_arrays(beams, np.flatnonzero(beams.is_hit))
+    assert occ.shape[1] == 9 and seg.shape[1] == 24  # exactly rigid groups: the group in the scan's place
     np.testing.assert_array_equal(occ[:, 8], groups[beams.scan_index[beams.is_hit]])
     np.testing.assert_array_equal(seg[:, 23], groups[beams.scan_index])
+    occ, seg = gppol(beams, groups, 0.2 * cov).inputs.core_arrays(beams, np.flatnonzero(beams.is_hit))
+    assert occ.shape[1] == 13 and seg.shape[1] == 34  # with offsets: the scans and the groups apart
+    np.testing.assert_array_equal(occ[:, 8], beams.scan_index[beams.is_hit])
+    np.testing.assert_array_equal(occ[:, 12], groups[beams.scan_index[beams.is_hit]])
+    np.testing.assert_array_equal(seg[:, 23], beams.scan_index)
+    np.testing.assert_array_equal(seg[:, 33], groups[beams.scan_index])
+    np.testing.assert_array_equal(
+        gppol(beams, None, 0.2 * cov).inputs.core_arrays(beams, np.flatnonzero(beams.is_hit))[0].shape,
+        (int(beams.is_hit.sum()), 9),
+    )
     with pytest.raises(ValueError, match="rigid groups"):
         gppol(beams, groups[:50]).inputs.core_arrays(beams, np.flatnonzero(beams.is_hit))
 
@@ -339,11 +406,26 @@ def test_the_builder_hands_rigid_groups_to_gppol_only_with_covariances(intel) ->
     cfg = MappingConfig(**FAST)
     beams = em.make_beams(rec, poses, np.arange(40, 60), cfg)
     cov = np.tile(np.diag([0.05**2, 0.05**2, 0.01**2]), (len(rec.scans), 1, 1))
-    groups = np.arange(len(rec.scans)) // 4
+    groups = RigidGroups(np.arange(len(rec.scans)) // 4)
     builder = MapBuilder.from_config(cfg, "gppol")
     params = GPParams(make_kernel("se", (0.9, 0.3)), 0.1, 8.0, 0.3, {"inputs": {}})
-    np.testing.assert_array_equal(builder.gp_map(beams, params, cov, groups).inputs.rigid_groups, groups)
+    inputs = builder.gp_map(beams, params, cov, groups).inputs
+    np.testing.assert_array_equal(inputs.rigid_groups, groups.group_of_scan)
+    assert inputs.group_moments is None  # exactly rigid: the laser noise alone within a group
     assert builder.gp_map(beams, params, None, groups).inputs.rigid_groups is None
     bounds = (*beams.hit_xy_m.min(axis=0), *beams.hit_xy_m.max(axis=0))
     tiled = builder.tiled_map(beams, params, bounds, 64, cov, rigid_groups=groups)
-    np.testing.assert_array_equal(tiled.factory.rigid_groups, groups)
+    assert tiled.factory.rigid_groups is groups
+    # offsets in each scan's frame reach the inputs turned into the world at the beams' headings
+    body = np.tile(np.diag([0.03**2, 0.001**2, 0.002**2]), (len(rec.scans), 1, 1))
+    offsets = RigidGroups(groups.group_of_scan, body)
+    inputs = builder.gp_map(beams, params, cov, offsets).inputs
+    world = offsets.offset_cov_world(beams)
+    heading = beams.base_poses_xytheta()[:, 2]
+    c, s = np.cos(heading), np.sin(heading)
+    along = world[beams.scan_index, :2, :2] @ np.stack([c, s], 1)[:, :, None]
+    np.testing.assert_allclose(along[:, :, 0], 0.03**2 * np.stack([c, s], 1), atol=1e-12)
+    expected = builder.gaussian_inputs(beams, world, params.kernel).moments
+    np.testing.assert_array_equal(inputs.group_moments.c0, expected.c0)
+    with pytest.raises(ValueError, match="offset covariances"):
+        RigidGroups(groups.group_of_scan, body[:5])

@@ -492,6 +492,7 @@ def test_gppols_rigid_groups_are_the_runs_keyframes_when_configured(loop_run, tm
     these scans gives none, and so does the default, ``scan`` (each scan alone, as the run mapped)."""
     from pipeline.api import RunView
     from pipeline.artifacts import read_keyframe_indices, read_rigid_groups, rigid_groups_label
+    from slam.trajectory_io import TrajectoryFormatError
 
     view = RunView(loop_run, "after")
     assert view.config.mapping.gppol.rigid_groups == "scan" and view.rigid_groups is None
@@ -499,10 +500,25 @@ def test_gppols_rigid_groups_are_the_runs_keyframes_when_configured(loop_run, tm
     path = loop_run / "trajectory" / "covariances.npz"
     keyframes = read_keyframe_indices(path)
     n = len(view.scans.scans.stamps_ns)
-    groups = read_rigid_groups(path, n, "keyframe")
+    read = read_rigid_groups(path, n, "keyframe")
+    groups = read.group_of_scan
     assert groups.shape == (n,) and len(keyframes) < n  # several scans per keyframe on this world
     np.testing.assert_array_equal(groups[keyframes], np.arange(len(keyframes)))
     assert np.all(np.diff(groups) >= 0) and np.all(np.diff(groups) <= 1)
+    # each scan's offset from its keyframe: none for a keyframe, growing along the odometry after it
+    offsets = read.offset_cov_body
+    assert offsets.shape == (n, 3, 3) and np.all(offsets[keyframes] == 0)
+    spread = np.trace(offsets, axis1=1, axis2=2)
+    later = np.flatnonzero(np.diff(groups) == 0) + 1  # scans after their keyframe
+    assert np.all(spread[later] > 0)
+    no_offsets = tmp_path / "no_offsets.npz"
+    with np.load(path) as z:
+        np.savez(no_offsets, **{k: z[k] for k in z.files if k != "scan_keyframe_offset_body"})
+    assert read_rigid_groups(no_offsets, n, "keyframe").offset_cov_body is None  # exactly rigid
+    with np.load(path) as z:
+        np.savez(no_offsets, **{**{k: z[k] for k in z.files}, "scan_keyframe_offset_body": offsets[:-1]})
+    with pytest.raises(TrajectoryFormatError, match="scan_keyframe_offset_body"):
+        read_rigid_groups(no_offsets, n, "keyframe")
     assert read_rigid_groups(path, n, "scan") is None
     other = tmp_path / "other.npz"
     np.savez(other, scan_stamps_ns=np.arange(n), scan_after=np.zeros((n, 3, 3)))
@@ -534,9 +550,10 @@ def test_a_run_with_keyframe_rigid_groups_maps_and_remaps_with_them(loop_bag, lo
     # the simulated poses are accurate, so the maps differ little, but they differ
     assert np.abs(grouped.probability - alone.probability).max() > 0
     view = load_run(out)
-    assert view.gp_map.inputs.rigid_groups is view.rigid_groups
+    assert view.gp_map.inputs.rigid_groups is view.rigid_groups.group_of_scan
+    assert view.gp_map.inputs.group_moments is not None  # each scan's odometry from its keyframe
     keyframes = read_keyframe_indices(out / "trajectory" / "covariances.npz")
-    np.testing.assert_array_equal(view.rigid_groups[keyframes], np.arange(len(keyframes)))
+    np.testing.assert_array_equal(view.rigid_groups.group_of_scan[keyframes], np.arange(len(keyframes)))
     result = run_cli("remap", str(out), "--recompute", "--json")
     assert result.returncode == 0, result.stderr
     assert_same_map(grouped, read_layers_npz(out / "remap/maps/remap/layers.npz"))
