@@ -60,6 +60,19 @@ def between(a: FloatArray, b: FloatArray) -> FloatArray:
     return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[..., 2] - a[..., 2])], axis=-1)
 
 
+def rot3(theta_rad: NDArray | float) -> FloatArray:
+    """(..., 3, 3) ``blockdiag(R(theta), 1)``: maps body-frame (x, y, theta) vectors to the world frame."""
+    th = np.asarray(theta_rad, dtype=np.float64)
+    out = np.zeros((*th.shape, 3, 3))
+    c, s = np.cos(th), np.sin(th)
+    out[..., 0, 0] = c
+    out[..., 0, 1] = -s
+    out[..., 1, 0] = s
+    out[..., 1, 1] = c
+    out[..., 2, 2] = 1.0
+    return out
+
+
 def transform_points(poses: FloatArray, points_xy: FloatArray) -> FloatArray:
     """(..., 2) parent-frame positions of (..., 2) points given in the frames of (..., 3) poses.
 

@@ -17,6 +17,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from datasets import se2
 from mapping.beams import Beams
 from mapping.core import (
     INPUTS_GH_DIFFERENCE,
@@ -110,9 +111,7 @@ class RigidGroups:
             return None
         theta = np.zeros(len(self))
         theta[beams.scan_index] = beams.base_poses_xytheta()[:, 2]
-        c, s = np.cos(theta), np.sin(theta)
-        rot = np.zeros((len(self), 3, 3))
-        rot[:, 0, 0], rot[:, 0, 1], rot[:, 1, 0], rot[:, 1, 1], rot[:, 2, 2] = c, -s, s, c, 1.0
+        rot = se2.rot3(theta)
         return rot @ self.offset_cov_body @ np.swapaxes(rot, 1, 2)
 
     def __len__(self) -> int:
@@ -135,12 +134,15 @@ class RigidGroups:
             cov[at] = self.offset_cov_body
         return RigidGroups(groups, cov)
 
-    def same_as(self, other: RigidGroups | None) -> bool:
-        """Whether ``other`` holds the same groups and offset covariances."""
-        if other is None or not np.array_equal(self.group_of_scan, other.group_of_scan):
+    @staticmethod
+    def equal(a: RigidGroups | None, b: RigidGroups | None) -> bool:
+        """Whether ``a`` and ``b`` hold the same groups and offset covariances (None: each scan alone)."""
+        if a is None or b is None:
+            return a is b
+        if not np.array_equal(a.group_of_scan, b.group_of_scan):
             return False
-        a, b = self.offset_cov_body, other.offset_cov_body
-        return (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
+        ca, cb = a.offset_cov_body, b.offset_cov_body
+        return (ca is None and cb is None) or (ca is not None and cb is not None and np.array_equal(ca, cb))
 
 
 @dataclass(frozen=True)

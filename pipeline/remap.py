@@ -36,6 +36,7 @@ import numpy as np
 from datasets.types import Trajectory
 from mapping.build import Bounds, MapBuilder
 from mapping.exports import read_layers_npz
+from mapping.gppol import RigidGroups
 from mapping.placement import with_placement
 from mapping.train import GPParams, ParamsFileError
 from pipeline.artifacts import (
@@ -216,7 +217,7 @@ def remap_run(
         and tuple(map_bounds) == run_bounds
         and cfg == run_config.mapping
         and config.scale.tile_cells == run_config.scale.tile_cells
-        and (new_groups is run_groups or (new_groups is not None and new_groups.same_as(run_groups)))
+        and RigidGroups.equal(new_groups, run_groups)
     )
     laser = stored.laser_in_base_xytheta
     builder = MapBuilder.from_config(cfg)

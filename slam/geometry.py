@@ -18,6 +18,7 @@ from datasets.se2 import between as between
 from datasets.se2 import compose as compose
 from datasets.se2 import inverse as inverse
 from datasets.se2 import path_length_m as path_length_m
+from datasets.se2 import rot3 as rot3
 from datasets.se2 import wrap_angle as wrap
 
 FloatArray = NDArray[np.float64]
@@ -60,19 +61,6 @@ def transform_points(pose: FloatArray, points_xy: FloatArray) -> FloatArray:
 def transform_points_each(poses_xytheta: FloatArray, point_xy: FloatArray) -> FloatArray:
     """(N, 2) one body-frame point (2,) mapped to the world by each of (N, 3) poses."""
     return se2.transform_points(poses_xytheta, np.asarray(point_xy, dtype=np.float64)[:2])
-
-
-def rot3(theta_rad: NDArray | float) -> FloatArray:
-    """(..., 3, 3) ``blockdiag(R(theta), 1)``: maps body-frame (x, y, theta) vectors to the world frame."""
-    th = np.asarray(theta_rad, dtype=np.float64)
-    out = np.zeros((*th.shape, 3, 3))
-    c, s = np.cos(th), np.sin(th)
-    out[..., 0, 0] = c
-    out[..., 0, 1] = -s
-    out[..., 1, 0] = s
-    out[..., 1, 1] = c
-    out[..., 2, 2] = 1.0
-    return out
 
 
 def rotate_cov_to_world(poses_xytheta: FloatArray, cov_body: FloatArray) -> FloatArray:

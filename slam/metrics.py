@@ -196,7 +196,7 @@ def loop_closure_scores(
 
 
 #: Scans of our odometry, each side, that may bridge a loop closure's keyframes to a relation's scans
-#: (:func:`closures_against_relations`): a second or two of motion, millimetres of odometry error.
+#: (:func:`closures_against_relations`): a second or two of motion, over which the odometry errs little.
 RELATION_BRIDGE_SCANS = 10
 
 

@@ -397,6 +397,24 @@ def test_a_rigid_group_is_mapped_as_one_scan(intel) -> None:
         gppol(beams, groups[:50]).inputs.core_arrays(beams, np.flatnonzero(beams.is_hit))
 
 
+def test_rigid_groups_compare_and_select_groups_with_their_offsets() -> None:
+    """``RigidGroups.equal`` tells groups and offsets apart (None: each scan alone); ``take`` keeps each
+    selected scan's group and offset."""
+    groups = np.array([0, 0, 1])
+    offsets = np.arange(1.0, 4.0)[:, None, None] * np.eye(3)
+    rigid, offset = RigidGroups(groups), RigidGroups(groups, offsets)
+    assert RigidGroups.equal(None, None) and not RigidGroups.equal(rigid, None)
+    assert not RigidGroups.equal(None, rigid)
+    assert RigidGroups.equal(rigid, RigidGroups(groups.copy())) and not RigidGroups.equal(rigid, offset)
+    assert not RigidGroups.equal(rigid, RigidGroups(np.array([0, 1, 1])))
+    assert RigidGroups.equal(offset, RigidGroups(groups, offsets.copy()))
+    assert not RigidGroups.equal(offset, RigidGroups(groups, 2 * offsets))
+    taken = offset.take(np.array([2, 0]))
+    np.testing.assert_array_equal(taken.group_of_scan, [1, 0])
+    np.testing.assert_array_equal(taken.offset_cov_body, offsets[[2, 0]])
+    assert rigid.take(np.array([1])).offset_cov_body is None and len(taken) == 2
+
+
 def test_the_builder_hands_rigid_groups_to_gppol_only_with_covariances(intel) -> None:
     """``MapBuilder`` passes the rigid groups to GPPOL's inputs (its tiles' factory too); without pose
     covariances they mean nothing and are dropped."""
