@@ -362,7 +362,8 @@ INPUTS_GH_DIFFERENCE = 2  # GPPOL, stationary kernel, Gauss-Hermite over the dif
 INPUTS_GH_NODES = 3  # GPPOL, NN kernel, Gauss-Hermite nodes of both inputs (eq. 23)
 
 #: Columns of GPPOL's endpoint and beam rows (:func:`_gaussian_inputs`), and of the rows of inputs whose
-#: rigid groups carry each scan's offset from the group (three levels of pair covariance, :func:`_pair_cov`).
+#: rigid groups carry each scan's offset from the group (three levels of pair covariance,
+#: :func:`_pair_cov_grouped`).
 OCC_COLUMNS = 9
 SEG_COLUMNS = 24
 OCC_COLUMNS_GROUPED = 13
