@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -113,94 +115,52 @@ def run_slam(
     consistency covariances, per-scan poses and covariances.
     """
     cfg = config or SlamConfig()
-    timings: dict[str, float] = {}
+    clock = _StageClock()
     stamps = np.asarray(scans.stamps_ns, dtype=np.int64)
     mount = np.asarray(laser_in_base_xytheta, dtype=np.float64)
 
-    t0 = time.perf_counter()
-    points = scans_points_base(scans, mount, cfg.odometry)
-    wheel = wheel_poses_at_scans(odometry, stamps) if odometry is not None and len(odometry) else None
-    timings["points_s"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    odo = run_odometry(points, wheel, cfg.odometry, progress)
-    timings["odometry_s"] = time.perf_counter() - t0
-    timings.update(odo.timings_s)
+    with clock("points_s"):
+        points = scans_points_base(scans, mount, cfg.odometry)
+        wheel = wheel_poses_at_scans(odometry, stamps) if odometry is not None and len(odometry) else None
+    with clock("odometry_s"):
+        odo = run_odometry(points, wheel, cfg.odometry, progress)
+    clock.timings.update(odo.timings_s)
 
     chain = keyframe_chain(odo, cfg)
     search = ClosureSearch(odo, chain, cfg, mount)
     t0 = time.perf_counter()
-    search.run(progress)
-    timings["loop_search_s"] = search.search_s
-    timings["graph_incremental_s"] = time.perf_counter() - t0 - search.search_s
-
-    t0 = time.perf_counter()
-    search.dense_pass()
-    timings["dense_pass_s"] = time.perf_counter() - t0
-
+    search.run(progress)  # the loop-closure search, and the incremental graph around it
+    clock.timings["loop_search_s"] = search.search_s
+    clock.timings["graph_incremental_s"] = time.perf_counter() - t0 - search.search_s
+    with clock("dense_pass_s"):
+        search.dense_pass()
     injected = search.inject(faults) if faults is not None else []
+    with clock("graph_batch_s"):
+        batch = robust_batch(search.graph.estimate(), list(search.graph.edges), cfg.graph)
 
-    t0 = time.perf_counter()
-    batch = robust_batch(search.graph.estimate(), list(search.graph.edges), cfg.graph)
-    timings["graph_batch_s"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    with stage(progress, "marginals", None):
+    with clock("marginals_s"), stage(progress, "marginals", None):
         kf_cov_after_body = batch.graph.marginals_body()
-    timings["marginals_s"] = time.perf_counter() - t0
     kf_cov_before_body = se2.propagate_chain_cov_body(
         chain.increments_xytheta, chain.increment_covs * batch.scale, chain.prior_cov
     )
-
-    t0 = time.perf_counter()
-    kf_rel_before_body, kf_rel_after_body = keyframe_consistency_body(
-        chain.poses_xytheta,
-        batch.poses_xytheta,
-        batch.graph.edges,
-        [points[s] for s in chain.scans],
-        search.closer.path_m[chain.scans],
-        cfg.consistency,
-    )
-    timings["consistency_s"] = time.perf_counter() - t0
-
+    with clock("consistency_s"):
+        kf_rel_before_body, kf_rel_after_body = keyframe_consistency_body(
+            chain.poses_xytheta,
+            batch.poses_xytheta,
+            batch.graph.edges,
+            [points[s] for s in chain.scans],
+            search.closer.path_m[chain.scans],
+            cfg.consistency,
+        )
     accepted, dropped = settle_closures(search.accepted, batch)
-    rejected = search.rejected + dropped
-    fault_report = None
-    if faults is not None:
-        kept = sum(c.reason == INJECTED for c in accepted)
-        fault_report = {
-            "fraction": faults.fraction,
-            "seed": faults.seed,
-            "injected": len(injected),
-            "kept": kept,
-        }
-
-    t0 = time.perf_counter()
-    per_scan = per_scan_covariances(
-        odo,
-        chain,
-        batch,
-        {
+    with clock("per_scan_s"):
+        keyframe_covs_body = {
             "cov_before": kf_cov_before_body,
             "cov_after": kf_cov_after_body,
             "relative_before": kf_rel_before_body,
             "relative_after": kf_rel_after_body,
-        },
-        cfg.graph,
-    )
-    timings["per_scan_s"] = time.perf_counter() - t0
-    stages = (
-        "points_s",
-        "odometry_s",
-        "loop_search_s",
-        "graph_incremental_s",
-        "dense_pass_s",
-        "graph_batch_s",
-        "marginals_s",
-        "consistency_s",
-        "per_scan_s",
-    )
-    timings["total_s"] = sum(timings[k] for k in stages)
+        }
+        per_scan = per_scan_covariances(odo, chain, batch, keyframe_covs_body, cfg.graph)
 
     kf = chain.scans
     return SlamResult(
@@ -217,15 +177,58 @@ def run_slam(
         keyframe_cov_before=_sym(se2.rotate_cov_to_world(chain.poses_xytheta, kf_cov_before_body)),
         keyframe_cov_after=_sym(se2.rotate_cov_to_world(batch.poses_xytheta, kf_cov_after_body)),
         loop_closures=tuple(accepted),
-        rejected_loop_closures=tuple(rejected),
+        rejected_loop_closures=tuple(search.rejected + dropped),
         graph_vertices_xytheta=batch.poses_xytheta,
         graph_edges=tuple(batch.graph.edges),
         variance_factor=batch.scale,
-        timings_s=timings,
+        timings_s=clock.with_total(),
         loop_closures_dropped=len(dropped),
-        fault_injection=fault_report,
+        fault_injection=_fault_report(faults, injected, accepted),
         keyframe_offset_cov_body=per_scan["offset_body"],
     )
+
+
+class _StageClock:
+    """Wall time per SLAM stage: ``with clock("name_s"): ...`` adds the block's seconds to ``timings``."""
+
+    #: The stages that make up ``total_s`` (the odometry's own breakdown is inside ``odometry_s``).
+    STAGES = (
+        "points_s",
+        "odometry_s",
+        "loop_search_s",
+        "graph_incremental_s",
+        "dense_pass_s",
+        "graph_batch_s",
+        "marginals_s",
+        "consistency_s",
+        "per_scan_s",
+    )
+
+    def __init__(self) -> None:
+        self.timings: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+
+    def with_total(self) -> dict[str, float]:
+        """The timings with ``total_s``, the sum of :attr:`STAGES`."""
+        return {**self.timings, "total_s": sum(self.timings[k] for k in self.STAGES)}
+
+
+def _fault_report(
+    faults: FalseClosures | None, injected: list, accepted: list[LoopClosure]
+) -> dict[str, float | int] | None:
+    """What ``evaluate slam --inject-false-closures`` reports: how many wrong closures were injected and how
+    many the back end kept (None without fault injection)."""
+    if faults is None:
+        return None
+    kept = sum(c.reason == INJECTED for c in accepted)
+    return {"fraction": faults.fraction, "seed": faults.seed, "injected": len(injected), "kept": kept}
 
 
 @dataclass(frozen=True)
