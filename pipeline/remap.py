@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from datasets.progress import StageTimer
 from datasets.types import Trajectory
 from mapping.build import Bounds, MapBuilder
 from mapping.exports import read_layers_npz
@@ -58,7 +59,6 @@ from pipeline.map_bounds import check_map_cells, parse_numbers
 from pipeline.map_exports import write_maps
 from pipeline.progress import Progress
 from pipeline.report import write_report
-from pipeline.run import StageTimer
 from pipeline.run_folder import (
     SUMMARY_NAME,
     check_output_dir,

@@ -9,10 +9,7 @@ only sequences them, times them and writes the run folder (staged, ``summary.jso
 
 from __future__ import annotations
 
-import time
-from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -20,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from datasets.errors import DatasetError
+from datasets.progress import StageTimer
 from datasets.registry import guess_format, open_dataset
 from datasets.se2 import path_length_m
 from datasets.types import Recording, Trajectory
@@ -56,25 +54,6 @@ if TYPE_CHECKING:
     from datasets.simulation.raster import GroundTruth
 
 MAP_MARGIN_M = 1.0
-
-
-class StageTimer:
-    """Wall time per stage, in the order the stages ran."""
-
-    def __init__(self) -> None:
-        self.seconds: dict[str, float] = {}
-        self._t0 = time.perf_counter()
-
-    @contextmanager
-    def __call__(self, name: str) -> Iterator[None]:
-        t = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t
-
-    def total(self) -> float:
-        return time.perf_counter() - self._t0
 
 
 def read_input(input_path: Path, config: Config) -> Recording:

@@ -18,14 +18,12 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from datasets.progress import ProgressLike, stage
+from datasets.progress import ProgressLike, StageTimer, stage
 from datasets.types import Recording, ScanSequence, Trajectory
 from slam import geometry as se2
 from slam.config import GraphConfig, SlamConfig
@@ -115,7 +113,7 @@ def run_slam(
     consistency covariances, per-scan poses and covariances.
     """
     cfg = config or SlamConfig()
-    clock = _StageClock()
+    clock = StageTimer()
     stamps = np.asarray(scans.stamps_ns, dtype=np.int64)
     mount = np.asarray(laser_in_base_xytheta, dtype=np.float64)
 
@@ -124,14 +122,14 @@ def run_slam(
         wheel = wheel_poses_at_scans(odometry, stamps) if odometry is not None and len(odometry) else None
     with clock("odometry_s"):
         odo = run_odometry(points, wheel, cfg.odometry, progress)
-    clock.timings.update(odo.timings_s)
+    clock.seconds.update(odo.timings_s)
 
     chain = keyframe_chain(odo, cfg)
     search = ClosureSearch(odo, chain, cfg, mount)
     t0 = time.perf_counter()
     search.run(progress)  # the loop-closure search, and the incremental graph around it
-    clock.timings["loop_search_s"] = search.search_s
-    clock.timings["graph_incremental_s"] = time.perf_counter() - t0 - search.search_s
+    clock.seconds["loop_search_s"] = search.search_s
+    clock.seconds["graph_incremental_s"] = time.perf_counter() - t0 - search.search_s
     with clock("dense_pass_s"):
         search.dense_pass()
     injected = search.inject(faults) if faults is not None else []
@@ -181,43 +179,26 @@ def run_slam(
         graph_vertices_xytheta=batch.poses_xytheta,
         graph_edges=tuple(batch.graph.edges),
         variance_factor=batch.scale,
-        timings_s=clock.with_total(),
+        timings_s={**clock.seconds, "total_s": sum(clock.seconds[k] for k in SLAM_STAGES)},
         loop_closures_dropped=len(dropped),
         fault_injection=_fault_report(faults, injected, accepted),
         keyframe_offset_cov_body=per_scan["offset_body"],
     )
 
 
-class _StageClock:
-    """Wall time per SLAM stage: ``with clock("name_s"): ...`` adds the block's seconds to ``timings``."""
-
-    #: The stages that make up ``total_s`` (the odometry's own breakdown is inside ``odometry_s``).
-    STAGES = (
-        "points_s",
-        "odometry_s",
-        "loop_search_s",
-        "graph_incremental_s",
-        "dense_pass_s",
-        "graph_batch_s",
-        "marginals_s",
-        "consistency_s",
-        "per_scan_s",
-    )
-
-    def __init__(self) -> None:
-        self.timings: dict[str, float] = {}
-
-    @contextmanager
-    def __call__(self, name: str) -> Iterator[None]:
-        t0 = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
-
-    def with_total(self) -> dict[str, float]:
-        """The timings with ``total_s``, the sum of :attr:`STAGES`."""
-        return {**self.timings, "total_s": sum(self.timings[k] for k in self.STAGES)}
+#: The stages whose times make up ``timings_s["total_s"]`` (the odometry's breakdown is inside
+#: ``odometry_s``).
+SLAM_STAGES = (
+    "points_s",
+    "odometry_s",
+    "loop_search_s",
+    "graph_incremental_s",
+    "dense_pass_s",
+    "graph_batch_s",
+    "marginals_s",
+    "consistency_s",
+    "per_scan_s",
+)
 
 
 def _fault_report(
