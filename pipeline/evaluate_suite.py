@@ -283,15 +283,6 @@ def slam_poses_on_reference(
     return base, cov, align, matched
 
 
-def rigid_groups_on_reference(
-    n_scans: int, rows: NDArray[np.int64], slam_rigid_groups: RigidGroups
-) -> RigidGroups:
-    """Rigid groups of the reference's ``n_scans`` scans: row ``rows[i]`` takes the group (and offset) of
-    our scan ``i`` matched to it (``slam_rigid_groups`` of M scans); a row without one, a group of its
-    own."""
-    return slam_rigid_groups.placed_on(n_scans, rows)
-
-
 def evaluate_slam_poses(
     ref: Recording,
     reference_path: str | Path,
@@ -328,7 +319,7 @@ def evaluate_slam_poses(
     test = truth if test_points_from == "reference" else np.where(matched[:, None], base, truth)
     groups = None
     if slam_rigid_groups is not None:
-        groups = rigid_groups_on_reference(len(ref.scans), rows, slam_rigid_groups)
+        groups = slam_rigid_groups.placed_on(len(ref.scans), rows)
     out = evaluate_holdout(
         ref,
         base,
@@ -587,7 +578,7 @@ def _evaluate(
         )
         if not np.all(matched):
             raise PipelineError(f"{ref.source}: {int(np.sum(~matched))} scans have no SLAM pose to map")
-        groups = None if our_groups is None else rigid_groups_on_reference(len(ref.scans), rows, our_groups)
+        groups = None if our_groups is None else our_groups.placed_on(len(ref.scans), rows)
         by_slam = evaluate_ground_truth(ref, base, gt, gt_path, cfg, progress, cov=cov, rigid_groups=groups)
         by_slam["alignment_xytheta"] = align.tolist()
         maps["slam_poses"] = _map_result(by_slam, "ground_truth", [], "slam", pose_cov)

@@ -22,7 +22,6 @@ from pipeline.evaluate_suite import (
     discover,
     evaluate_slam_poses,
     relations_beside,
-    rigid_groups_on_reference,
     slam_poses_on_reference,
     table_row,
 )
@@ -263,11 +262,11 @@ def test_rigid_groups_follow_our_scans_onto_the_reference_rows() -> None:
 
     rows = np.array([0, 2, 3, 5])
     offsets = np.arange(1, 5)[:, None, None] * np.eye(3)
-    placed = rigid_groups_on_reference(7, rows, RigidGroups(np.array([0, 0, 1, 1]), offsets))
+    placed = RigidGroups(np.array([0, 0, 1, 1]), offsets).placed_on(7, rows)
     got = placed.group_of_scan
     np.testing.assert_array_equal(got[rows], [0, 0, 1, 1])
     alone = np.delete(got, rows)
     assert len(np.unique(alone)) == 3 and not np.isin(alone, [0, 1]).any()
     np.testing.assert_array_equal(placed.offset_cov_body[rows], offsets)
     assert not np.delete(placed.offset_cov_body, rows, axis=0).any()
-    assert rigid_groups_on_reference(7, rows, RigidGroups(np.array([0, 0, 1, 1]))).offset_cov_body is None
+    assert RigidGroups(np.array([0, 0, 1, 1])).placed_on(7, rows).offset_cov_body is None
