@@ -53,6 +53,50 @@ class _VersionAction(argparse.Action):
         parser.exit()
 
 
+def seed_list(text: str) -> list[int]:
+    """The hold-out seeds one ``--seed`` word names: ``3``, ``1,2``, ``0-4`` or a mix (``0-2,7``);
+    argparse.ArgumentTypeError otherwise (a usage error, exit 2)."""
+    seeds: list[int] = []
+    for part in text.split(","):
+        lo, sep, hi = part.strip().partition("-")
+        try:
+            first, last = int(lo), int(hi if sep else lo)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"'{text}' is not a seed, a list (1,2) or a range (0-4)"
+            ) from None
+        if first < 0 or last < first:
+            raise argparse.ArgumentTypeError(f"'{text}': seeds are integers >= 0, ranges run upwards")
+        seeds.extend(range(first, last + 1))
+    return seeds
+
+
+class _SeedsAction(argparse.Action):
+    """``--seed`` words (:func:`seed_list`) add up, each seed once: ``--seed 0-4``, ``--seed 0 --seed 3``.
+    One word per flag, so that a positional argument after it is never taken for a seed."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        seeds = list(getattr(namespace, self.dest) or [])
+        seeds.extend(s for s in values if s not in seeds)
+        setattr(namespace, self.dest, seeds)
+
+
+def _add_seeds(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--seed",
+        type=seed_list,
+        action=_SeedsAction,
+        metavar="SEEDS",
+        help="seed(s) of the hold-out split: 3, 1,2 or 0-4; repeat the flag to add more (default: 0-4)",
+    )
+
+
 def _quiet_option() -> argparse.ArgumentParser:
     """``-q`` for every command, so that it may also follow the command (``run.py run X -q``); absent there,
     it keeps the value given before the command."""
@@ -211,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
         "map", parents=quiet, help="AUC of GPPOL, GPFOL and the occupancy grid (ground truth or hold-out)"
     )
     q.add_argument("input", type=Path, help="a simulated bag (with INPUT.gt.npz) or a recording")
-    q.add_argument("--seed", type=int, action="append", help="seed(s) of the hold-out split (default: 0-4)")
+    _add_seeds(q)
     q.add_argument("--config", type=Path, help="YAML configuration")
     q.add_argument("--scan-topic", help="LaserScan topic of a bag (default: auto-detect); 'all': every one")
     q.add_argument(
@@ -257,7 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="NAME",
         help="only these datasets, named as in the table (intel, fr079, seattle, fr-clinic, loop-0, ...)",
     )
-    q.add_argument("--seed", type=int, action="append", help="seed(s) of the hold-out split (default: 0-4)")
+    _add_seeds(q)
     q.add_argument("--config", type=Path, help="YAML configuration")
     q.add_argument("--slam-only", action="store_true", help="SLAM metrics only, no maps")
     q.add_argument(

@@ -88,6 +88,39 @@ def test_readme_synopsis_lists_every_option_of_every_command() -> None:
         assert options == documented, f"{name}: --help has {sorted(options)}, README {sorted(documented)}"
 
 
+@pytest.mark.parametrize("command", [["evaluate", "map", "x.log"], ["evaluate", "suite"]])
+def test_hold_out_seeds_as_words_lists_ranges_or_repeated_flags(command: list[str]) -> None:
+    """--seed takes what its help names (3, 1,2, 0-4) and repeated flags add up, once each; a positional
+    argument after it stays one; without it the protocol's default applies (None here)."""
+    from run import build_parser
+
+    parser = build_parser()
+
+    def seeds(*words: str) -> list[int] | None:
+        return parser.parse_args([*command, *words]).seed
+
+    assert seeds() is None
+    assert seeds("--seed", "3") == [3]
+    assert seeds("--seed", "1,2") == [1, 2]
+    assert seeds("--seed", "0-2,7") == [0, 1, 2, 7]
+    assert seeds("--seed", "1", "--seed", "3,1") == [1, 3]
+    if command[1] == "map":
+        args = parser.parse_args(["evaluate", "map", "--seed", "0-1", "x.log"])
+        assert args.seed == [0, 1] and str(args.input) == "x.log"
+
+
+@pytest.mark.parametrize("word", ["x", "3-1", "1,", "-1"])
+def test_a_bad_seed_is_a_usage_error_naming_it(word: str) -> None:
+    result = subprocess.run(
+        [sys.executable, "run.py", "evaluate", "map", "x.log", f"--seed={word}"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == 2
+    assert f"'{word}'" in result.stderr and "--seed" in result.stderr
+
+
 def test_version_is_the_one_of_pyproject() -> None:
     import tomllib
 
