@@ -229,6 +229,8 @@ def _map_and_score(
         row[f"{mapper}_train_s"] = t1 - t0
         row[f"{mapper}_map_and_query_s"] = t2 - t1
         row[f"{mapper}_hyperparameters"] = {"kernel": params.kernel.name, **params.kernel.as_dict()}
+        # eq. (9) per training point at the learnt hyperparameters: compares kernels on one recording
+        row[f"{mapper}_lml_per_point"] = params.info.get("lml_per_point")
         row[f"{mapper}_params"] = params.to_dict()  # save as JSON and set mapping.params_file to reuse
     t0 = time.perf_counter()
     p_grid = MapBuilder.from_config(cfg).grid(beams, grid_bounds).query(points)

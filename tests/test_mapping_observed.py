@@ -287,6 +287,12 @@ def test_suite_rows_carry_the_split_and_the_table_shows_it(intel_seed0) -> None:
     assert result["auc_observed"] == {k: row[f"auc_observed_{k}"] for k in ("gppol", "gpfol", "grid")}
     assert result["unobserved_share"] == row["unobserved_share"]
     assert result["per_seed"][0]["auc_unobserved_gppol"] == row["auc_unobserved_gppol"]
+    # each mapper's learnt log marginal likelihood per point stays in the trimmed rows (the full parameter
+    # dumps go): it is what compares kernels on one recording
+    for mapper in ("gppol", "gpfol"):
+        lml = result["per_seed"][0][f"{mapper}_lml_per_point"]
+        assert lml == row[f"{mapper}_params"]["info"]["lml_per_point"] and np.isfinite(lml)
+        assert f"{mapper}_params" not in result["per_seed"][0]
     cells = table_row({"name": "intel", "maps": {"reference_poses": result, "slam_poses": result}})
     share = 100 * row["unobserved_share"]
     assert cells["AUC observed GPPOL / unobserved"] == f"{row['auc_observed_gppol']:.4f} / {share:.1f} %"
