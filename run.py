@@ -266,8 +266,10 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument(
         "--breakdown",
         action="store_true",
-        help="hold-out protocol: also each AUC by the test points' distance from their laser and by the "
-        "mapped beam endpoints within 1 m of them (where a map wins or loses)",
+        help="hold-out protocol: also each AUC by the test points' distance from their laser, by the "
+        "mapped beam endpoints within 1 m of them and by their distance from the nearest one, with the "
+        "part of the whole AUC's shortfall on each bin's occupied and free points (where a map wins or "
+        "loses)",
     )
     _add_json(q)
     q = ev.add_parser("slam", parents=quiet, help="relations error and ATE of the SLAM trajectory")

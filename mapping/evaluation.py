@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from mapping.beams import Beams
 from mapping.exports import MapLayers
-from mapping.metrics import roc_auc
+from mapping.metrics import auc_shortfall_per_point, roc_auc
 from mapping.raster import GridGeometry, in_grid, point_cell, segment_cells
 
 FloatArray = NDArray[np.float64]
@@ -112,6 +112,9 @@ def holdout_test_points(
 RANGE_EDGES_M = (0.0, 2.0, 5.0, 10.0, 20.0, HOLDOUT_MAX_RANGE_M)
 HIT_COUNT_EDGES = (0.0, 1.0, 5.0, 20.0, 100.0, math.inf)
 HIT_RADIUS_M = 1.0
+#: ... and its distance from the nearest of the training beams' endpoints (m): a wall the map places a few
+#: centimetres off leaves its occupied test points in the first bins beyond the map's returns.
+NEAREST_HIT_EDGES_M = (0.0, 0.05, 0.1, 0.2, 0.5, 1.0, math.inf)
 
 
 def hits_within(hits_xy_m: FloatArray, points_xy_m: FloatArray, radius_m: float = HIT_RADIUS_M) -> NDArray:
@@ -127,17 +130,34 @@ def hits_within(hits_xy_m: FloatArray, points_xy_m: FloatArray, radius_m: float 
     return np.asarray(counts, dtype=np.int64).reshape(points.shape[0])
 
 
+def nearest_hit_m(hits_xy_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
+    """(T,) the distance (m) from each (T, 2) point to the nearest of the (H, 2) ``hits_xy_m`` (infinity
+    without any)."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+    hits = np.asarray(hits_xy_m, dtype=np.float64).reshape(-1, 2)
+    if hits.shape[0] == 0:
+        return np.full(points.shape[0], math.inf)
+    return np.asarray(cKDTree(hits).query(points)[0], dtype=np.float64).reshape(points.shape[0])
+
+
 def auc_by_bins(
     probability: FloatArray, labels: NDArray[np.bool_], values: FloatArray, edges: Sequence[float]
 ) -> list[dict]:
     """The test points split by ``values`` (T,) into the bins ``[edges[i], edges[i + 1])`` (the last one
     closed): per bin ``from``, ``to`` (None: no upper end), ``test_points``, ``occupied``, ``auc`` of
-    ``probability`` (None unless both labels occur) and the mean probability of its occupied and of its
-    free points (``p_occupied``, ``p_free``; None without any). Where a map wins or loses: near or far from
-    the sensor, where returns are dense or sparse."""
+    ``probability`` (None unless both labels occur), the mean probability of its occupied and of its
+    free points (``p_occupied``, ``p_free``; None without any), and how much of the AUC over all the test
+    points falls short of 1 on its occupied and on its free points (``auc_lost_occupied``,
+    ``auc_lost_free``: :func:`mapping.metrics.auc_shortfall_per_point` summed over the bin; over all bins
+    each sums to ``1 - AUC``; None unless both labels occur among all the points). Where a map wins or
+    loses: near or far from the sensor, where returns are dense or sparse; the bin's AUC compares its own
+    points, its lost share ranks them against all the others."""
     p = np.asarray(probability, dtype=np.float64)
     y = np.asarray(labels, dtype=bool)
     v = np.asarray(values, dtype=np.float64)
+    lost = auc_shortfall_per_point(p, y) if (y.any() and not y.all()) else None
     out = []
     for i in range(len(edges) - 1):
         lo, hi = float(edges[i]), float(edges[i + 1])
@@ -153,6 +173,8 @@ def auc_by_bins(
                 "auc": float(roc_auc(pb, yb)) if both else None,
                 "p_occupied": float(pb[yb].mean()) if yb.any() else None,
                 "p_free": float(pb[~yb].mean()) if (~yb).any() else None,
+                "auc_lost_occupied": float(lost[m & y].sum()) if lost is not None else None,
+                "auc_lost_free": float(lost[m & ~y].sum()) if lost is not None else None,
             }
         )
     return out

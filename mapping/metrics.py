@@ -38,6 +38,27 @@ def roc_auc(scores: NDArray, labels: NDArray) -> float:
     return float(u / (n_pos * n_neg))
 
 
+def auc_shortfall_per_point(scores: NDArray, labels: NDArray) -> FloatArray:
+    """(T,) each point's part of ``1 - AUC`` (:func:`roc_auc`): an occupied point's is the share of the free
+    points scoring at or above it (ties one half) over the number of occupied points, a free point's the
+    share of occupied points at or below it over the number of free points. The occupied points' parts sum
+    to ``1 - AUC``, and so do the free points'; summed over a subset (e.g. the test points at some
+    distance from the map's returns), they say how much of the AUC's shortfall falls there, against every
+    other point of the other label (an AUC within the subset only compares the subset's points)."""
+    s, y = _check(scores, labels)
+    ranks = rankdata(s)
+    n_pos = int(y.sum())
+    n_neg = y.size - n_pos
+    out = np.empty(y.size)
+    # among all points, an occupied point's average rank counts the free points below it (ties one half)
+    # on top of its rank among the occupied points; likewise for a free point
+    below = ranks[y] - rankdata(s[y])
+    out[y] = (1.0 - below / n_neg) / n_pos
+    above = n_pos - (ranks[~y] - rankdata(s[~y]))
+    out[~y] = (1.0 - above / n_pos) / n_neg
+    return out
+
+
 def roc_curve(scores: NDArray, labels: NDArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """False- and true-positive rates at every distinct threshold (from +inf down), with the thresholds.
 

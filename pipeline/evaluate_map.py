@@ -46,6 +46,7 @@ from mapping.config import MappingConfig, SourceNoiseConfig
 from mapping.evaluation import (
     HIT_COUNT_EDGES,
     HIT_RADIUS_M,
+    NEAREST_HIT_EDGES_M,
     RANGE_EDGES_M,
     auc_by_bins,
     hits_within,
@@ -53,6 +54,7 @@ from mapping.evaluation import (
     holdout_split,
     holdout_test_points,
     is_carmen_180,
+    nearest_hit_m,
     observed_points,
 )
 from mapping.gppol import RigidGroups
@@ -250,16 +252,25 @@ def _map_and_score(
 
 
 #: The breakdowns of ``evaluate map --breakdown``: (key, bin edges) of :func:`breakdown_values`.
-BREAKDOWNS = (("range_m", RANGE_EDGES_M), ("hits_1m", HIT_COUNT_EDGES))
+BREAKDOWNS = (
+    ("range_m", RANGE_EDGES_M),
+    ("hits_1m", HIT_COUNT_EDGES),
+    ("nearest_hit_m", NEAREST_HIT_EDGES_M),
+)
 
 
 def breakdown_values(beams: Beams, points: np.ndarray, ranges_m: np.ndarray) -> dict[str, np.ndarray]:
     """Per (P, 2) test point what ``--breakdown`` splits the AUCs by: ``range_m`` (P,), its distance from
-    its laser (``ranges_m``, from :func:`mapping.evaluation.holdout_test_points`), and ``hits_1m`` (P,), the
+    its laser (``ranges_m``, from :func:`mapping.evaluation.holdout_test_points`), ``hits_1m`` (P,), the
     mapped beams' endpoints within :data:`mapping.evaluation.HIT_RADIUS_M` of it
-    (:func:`mapping.evaluation.hits_within`)."""
+    (:func:`mapping.evaluation.hits_within`), and ``nearest_hit_m`` (P,), its distance from the nearest
+    of them (:func:`mapping.evaluation.nearest_hit_m`)."""
     hits = beams.ends_xy_m[np.asarray(beams.is_hit, dtype=bool)]
-    return {"range_m": np.asarray(ranges_m, dtype=np.float64), "hits_1m": hits_within(hits, points)}
+    return {
+        "range_m": np.asarray(ranges_m, dtype=np.float64),
+        "hits_1m": hits_within(hits, points),
+        "nearest_hit_m": nearest_hit_m(hits, points),
+    }
 
 
 def _binned_aucs(
@@ -420,6 +431,9 @@ def _bin_label(key: str, lo: float, hi: float) -> str:
     (``0``, ``1-4``, ``>= 100``)."""
     if key == "range_m":
         return f"distance from the laser {lo:g}-{hi:g} m"
+    if key == "nearest_hit_m":
+        what = "nearest mapped endpoint"
+        return f"{what} >= {lo:g} m" if not np.isfinite(hi) else f"{what} {lo:g}-{hi:g} m"
     title = f"endpoints within {HIT_RADIUS_M:g} m"
     if not np.isfinite(hi):
         return f"{title} >= {lo:g}"
@@ -428,23 +442,37 @@ def _bin_label(key: str, lo: float, hi: float) -> str:
 
 def breakdown_table(rows: list[dict[str, Any]]) -> dict[str, str]:
     """Table rows of the per-seed breakdowns (:func:`_binned_aucs`), when the rows have them: per bin, the
-    AUC of gppol / gpfol / grid as a mean over the seeds where it is defined ('-' where it never is), and
-    the bin's test points (summed over the seeds, occupied in brackets)."""
+    AUC of gppol / gpfol / grid as a mean over the seeds where it is defined ('-' where it never is) with
+    the bin's test points (summed over the seeds, occupied in brackets), and the part of the whole AUC's
+    shortfall that falls on the bin's occupied and on its free points (means over the seeds)."""
     out: dict[str, str] = {}
+    names = (*MAPPERS, "grid")
     for key, edges in BREAKDOWNS:
         if f"by_{key}_gppol" not in (rows[0] if rows else {}):
             continue
         for i in range(len(edges) - 1):
-            aucs = []
-            for mapper in (*MAPPERS, "grid"):
-                values = [r[f"by_{key}_{mapper}"][i]["auc"] for r in rows]
-                values = [v for v in values if v is not None]
-                aucs.append(f"{np.mean(values):.4f}" if values else "-")
+            aucs = " / ".join(_mean_bin(rows, f"by_{key}_{mapper}", i, "auc") for mapper in names)
             n = sum(r[f"by_{key}_gppol"][i]["test_points"] for r in rows)
             occ = sum(r[f"by_{key}_gppol"][i]["occupied"] for r in rows)
-            label = f"AUC gppol / gpfol / grid, {_bin_label(key, edges[i], edges[i + 1])}"
-            out[label] = f"{' / '.join(aucs)} ({n} points, {occ} occupied)"
+            where = _bin_label(key, edges[i], edges[i + 1])
+            out[f"AUC gppol / gpfol / grid, {where}"] = f"{aucs} ({n} points, {occ} occupied)"
+            lost = " / ".join(
+                " + ".join(_mean_bin(rows, f"by_{key}_{mapper}", i, f"auc_lost_{label}") for label in LABELS)
+                for mapper in names
+            )
+            out[f"AUC lost (occupied + free) gppol / gpfol / grid, {where}"] = lost
     return out
+
+
+#: The two labels of a test point, as the per-bin keys name them (``auc_lost_occupied``, ``auc_lost_free``).
+LABELS = ("occupied", "free")
+
+
+def _mean_bin(rows: list[dict[str, Any]], key: str, i: int, field: str) -> str:
+    """The mean over the seeds' ``rows`` of ``row[key][i][field]`` as a table shows it ('-' if never set)."""
+    values = [r[key][i].get(field) for r in rows]
+    values = [v for v in values if v is not None]
+    return f"{np.mean(values):.4f}" if values else "-"
 
 
 def _percent(share: float | None) -> str:

@@ -11,12 +11,14 @@ import pytest
 from mapping.beams import beams_from_scans
 from mapping.evaluation import (
     HIT_COUNT_EDGES,
+    NEAREST_HIT_EDGES_M,
     auc_by_bins,
     ground_truth_auc_over,
     hits_within,
     holdout_split,
     holdout_test_points,
     is_carmen_180,
+    nearest_hit_m,
     observed_cells,
     pass_masks,
     raster_cell_centres,
@@ -112,7 +114,23 @@ def test_auc_by_bins_counts_and_scores_each_bin() -> None:
     # an open-ended last bin is written without infinity (JSON has none)
     open_rows = auc_by_bins(p, labels, values, (0.0, 5.0, math.inf))
     assert open_rows[-1]["to"] is None and open_rows[-1]["test_points"] == np.sum(values >= 5)
-    assert HIT_COUNT_EDGES[-1] == math.inf
+    assert HIT_COUNT_EDGES[-1] == math.inf and NEAREST_HIT_EDGES_M[-1] == math.inf
+    # the whole AUC's shortfall, split over the bins: each label's parts add up to 1 - AUC
+    lost = 1 - roc_auc(p, labels)
+    assert sum(r["auc_lost_occupied"] for r in rows) == pytest.approx(lost, abs=1e-12)
+    assert sum(r["auc_lost_free"] for r in rows) == pytest.approx(lost, abs=1e-12)
+    assert rows[0]["auc_lost_occupied"] == 0.0 and rows[0]["auc_lost_free"] > 0  # free points only there
+    one_label = auc_by_bins(p[~labels], labels[~labels], values[~labels], (0.0, 5.0, 10.0))
+    assert one_label[0]["auc_lost_free"] is None and one_label[0]["auc"] is None
+
+
+def test_nearest_hit_m_is_the_distance_to_the_nearest_endpoint() -> None:
+    rng = np.random.default_rng(2)
+    hits = rng.uniform(0, 5, (300, 2))
+    pts = rng.uniform(-1, 6, (200, 2))
+    d = np.hypot(*(pts[:, None, :] - hits[None, :, :]).transpose(2, 0, 1))
+    np.testing.assert_allclose(nearest_hit_m(hits, pts), d.min(axis=1), atol=1e-12)
+    assert np.all(np.isinf(nearest_hit_m(np.zeros((0, 2)), pts)))
 
 
 def test_hits_within_counts_like_brute_force() -> None:

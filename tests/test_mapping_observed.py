@@ -15,6 +15,7 @@ from mapping.build import MapBuilder
 from mapping.config import MappingConfig
 from mapping.evaluation import (
     HIT_COUNT_EDGES,
+    NEAREST_HIT_EDGES_M,
     RANGE_EDGES_M,
     auc_by_bins,
     hits_within,
@@ -22,6 +23,7 @@ from mapping.evaluation import (
     holdout_split,
     holdout_test_points,
     is_carmen_180,
+    nearest_hit_m,
     observed_points,
     raster_cell_centres,
 )
@@ -218,7 +220,14 @@ def test_intel_holdout_breakdown_by_range_and_nearby_endpoints(intel_seed0) -> N
     counts = hits_within(hits, pts)
     assert np.all(counts[near] >= 1)  # a subsample of the endpoints within 1 m: the count sees them too
     assert dist.max() <= 40.0 and row["by_range_m_grid"][-1]["to"] == 40.0  # the protocol's longest beam
-    for key, edges, values in (("range_m", RANGE_EDGES_M, dist), ("hits_1m", HIT_COUNT_EDGES, counts)):
+    nearest = nearest_hit_m(hits, pts)
+    assert np.all((nearest <= 1.0) == (counts >= 1))
+    cases = (
+        ("range_m", RANGE_EDGES_M, dist),
+        ("hits_1m", HIT_COUNT_EDGES, counts),
+        ("nearest_hit_m", NEAREST_HIT_EDGES_M, nearest),
+    )
+    for key, edges, values in cases:
         for mapper in ("gppol", "gpfol", "grid"):
             bins = row[f"by_{key}_{mapper}"]
             assert len(bins) == len(edges) - 1
@@ -230,15 +239,28 @@ def test_intel_holdout_breakdown_by_range_and_nearby_endpoints(intel_seed0) -> N
             assert (got["auc"] is None) == (want["auc"] is None)
             if want["auc"] is not None:
                 assert got["auc"] == pytest.approx(want["auc"], abs=1e-12)
+            assert got["auc_lost_occupied"] == pytest.approx(want["auc_lost_occupied"], abs=1e-12)
+        for mapper in ("gppol", "gpfol", "grid"):  # the whole AUC's shortfall, split over the bins
+            bins = row[f"by_{key}_{mapper}"]
+            assert sum(b["auc_lost_free"] for b in bins) == pytest.approx(1 - row[f"auc_{mapper}"], abs=1e-9)
     # walls are where the mapped returns are: occupied test points crowd the densest bin, not the emptiest
     emptiest, densest = row["by_hits_1m_gppol"][0], row["by_hits_1m_gppol"][-1]
     assert densest["occupied"] / densest["test_points"] > 0.3 > emptiest["occupied"] / emptiest["test_points"]
+    # a GP map loses most of its AUC next to the mapped returns, where walls and free space meet, not
+    # metres from them
+    lost = [b["auc_lost_occupied"] + b["auc_lost_free"] for b in row["by_nearest_hit_m_gppol"]]
+    assert sum(lost[:3]) > sum(lost[4:])
     table = breakdown_table([row])
-    assert len(table) == len(RANGE_EDGES_M) - 1 + len(HIT_COUNT_EDGES) - 1
+    bins = len(RANGE_EDGES_M) - 1 + len(HIT_COUNT_EDGES) - 1 + len(NEAREST_HIT_EDGES_M) - 1
+    assert len(table) == 2 * bins  # per bin its AUC and its part of the shortfall
+    near_lost = table["AUC lost (occupied + free) gppol / gpfol / grid, nearest mapped endpoint 0-0.05 m"]
+    occ_lost, free_lost = (row["by_nearest_hit_m_gppol"][0][f"auc_lost_{k}"] for k in ("occupied", "free"))
+    assert near_lost.startswith(f"{occ_lost:.4f} + {free_lost:.4f} / ")
+    assert table["AUC gppol / gpfol / grid, nearest mapped endpoint >= 1 m"]
     first = row["by_range_m_gppol"][0]
     near_cell = table["AUC gppol / gpfol / grid, distance from the laser 0-2 m"]
     assert near_cell.startswith(f"{first['auc']:.4f} / ")
-    hit_rows = [k.split("within 1 m ")[1] for k in table if "endpoints within 1 m" in k]
+    hit_rows = [k.split("within 1 m ")[1] for k in table if k.startswith("AUC gppol") and "within 1 m" in k]
     assert hit_rows == ["0", "1-4", "5-19", "20-99", ">= 100"]  # counts: the integers of each bin
     assert breakdown_table([{k: v for k, v in row.items() if not k.startswith("by_")}]) == {}
 
