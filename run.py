@@ -138,7 +138,7 @@ def _add_results(p: argparse.ArgumentParser, what: str, example: str) -> None:
 
 #: Options that choose what ``evaluate suite`` / ``bench`` runs, meaningless with ``--from-json``.
 RUN_OPTIONS = {
-    "suite": ("data", "only", "seed", "config", "slam_only", "no_simulated"),
+    "suite": ("data", "only", "seed", "config", "slam_only", "no_simulated", "breakdown"),
     "bench": ("only",),
 }
 
@@ -308,6 +308,12 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--slam-only", action="store_true", help="SLAM metrics only, no maps")
     q.add_argument(
         "--no-simulated", action="store_true", help="leave out the simulated loop world (loop-0 to loop-2)"
+    )
+    q.add_argument(
+        "--breakdown",
+        action="store_true",
+        help="the hold-out protocols' per-seed rows also split each AUC as evaluate map --breakdown does "
+        "(in --json; the tables stay as they are)",
     )
     _add_json(q)
     _add_results(q, "result tables", "docs/results.md")

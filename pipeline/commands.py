@@ -303,6 +303,7 @@ def _evaluate_suite(args: argparse.Namespace, emit_json: EmitJson, progress: Any
             simulated=not args.no_simulated,
             progress=progress,
             command=getattr(args, "command_line", None),
+            breakdown=args.breakdown,
         )
     page = None
     if args.markdown is not None:

@@ -296,6 +296,7 @@ def evaluate_slam_poses(
     block_scans: int | None = None,
     test_points_from: Literal["reference", "slam"] = "reference",
     slam_rigid_groups: RigidGroups | None = None,
+    breakdown: bool = False,
 ) -> dict[str, Any]:
     """The hold-out protocol on our SLAM's poses (SPEC section 6, "Maps from our own SLAM"): the training
     scans mapped at our aligned poses (:func:`slam_poses_on_reference`; GPPOL with our rotated marginals;
@@ -309,7 +310,7 @@ def evaluate_slam_poses(
     the trajectories' consistency without taking either as the truth.
 
     ``slam_rigid_groups``: the rigid groups of our M poses (:meth:`mapping.build.MapBuilder.gp_map`;
-    None: each scan alone)."""
+    None: each scan alone). ``breakdown``: as :func:`pipeline.evaluate_map.evaluate_holdout`."""
     if test_points_from not in ("reference", "slam"):
         raise ValueError(f"test_points_from must be 'reference' or 'slam', got {test_points_from!r}")
     base, cov, align, matched = slam_poses_on_reference(
@@ -331,6 +332,7 @@ def evaluate_slam_poses(
         block_scans=block_scans,
         mappable=matched,
         rigid_groups=groups,
+        breakdown=breakdown,
     )
     out["alignment_xytheta"] = align.tolist()
     out["unmatched_reference_scans"] = int(np.sum(~matched))
@@ -424,8 +426,11 @@ def run_entry(
     seeds: list[int],
     slam_only: bool = False,
     progress: Progress | None = None,
+    breakdown: bool = False,
 ) -> dict[str, Any]:
-    """One row of the suite (module docstring); never raises an ``Exception`` (it becomes ``error``)."""
+    """One row of the suite (module docstring); never raises an ``Exception`` (it becomes ``error``).
+    ``breakdown``: the hold-out protocols' per-seed rows also split the AUCs (``evaluate map
+    --breakdown``)."""
     progress = progress or Progress()
     row: dict[str, Any] = {
         "name": entry.name,
@@ -455,6 +460,7 @@ def run_entry(
                     slam_only,
                     bar,
                     entry.relations_path,
+                    breakdown,
                 )
             else:
                 from datasets.simulation import simulate
@@ -465,7 +471,7 @@ def run_entry(
                     simulate(SIMULATED_WORLD, bag, seed=entry.simulated_seed)
                     row["input"] = str(bag)
                     row["timings_s"]["simulate_s"] = time.perf_counter() - t1
-                    _evaluate(row, bag, None, config, seeds, slam_only, bar)
+                    _evaluate(row, bag, None, config, seeds, slam_only, bar, breakdown=breakdown)
         except _Skipped as why:
             row["skipped"] = str(why)
         except Exception as exc:  # the dataset boundary: one row with its error, the suite goes on
@@ -483,6 +489,7 @@ def _evaluate(
     slam_only: bool,
     bar: StageBar,
     relations_path: Path | None = None,
+    breakdown: bool = False,
 ) -> None:
     """Fill ``row`` with the SLAM metrics (and the benchmark relations' errors where ``relations_path``
     is given) and the maps of one recording (raises on failure)."""
@@ -558,7 +565,7 @@ def _evaluate(
         f"SLAM {mode} covariances{shared} (aligned)" if slam_cov is not None else "none (laser noise only)"
     )
     if ref is None:
-        _own_maps_only(row, rec, result, slam_cov, cfg, seeds, progress)
+        _own_maps_only(row, rec, result, slam_cov, cfg, seeds, progress, breakdown)
         return
     truth = reference_base_poses(ref, Path(reference_path))
     ours = np.asarray(result.poses_after_xytheta)[scans]
@@ -593,7 +600,7 @@ def _evaluate(
     if block != HOLDOUT_BLOCK:
         notes.append(f"maps: blocks of {block} scans")
     t0 = time.perf_counter()
-    by_ref = evaluate_holdout(ref, truth, seeds, cfg, progress, block_scans=block)
+    by_ref = evaluate_holdout(ref, truth, seeds, cfg, progress, block_scans=block, breakdown=breakdown)
     exact = "none (exact reference poses)"
     maps["reference_poses"] = _map_result(by_ref, "holdout", seeds, "reference", exact)
     timings["maps_reference_s"] = time.perf_counter() - t0
@@ -616,6 +623,7 @@ def _evaluate(
             block,
             test_points_from,
             our_groups,
+            breakdown,
         )
         maps[key] = _map_result(by_slam, "holdout", seeds, "slam", pose_cov)
         timings[timing] = time.perf_counter() - t0
@@ -629,6 +637,7 @@ def _own_maps_only(
     cfg: MappingConfig,
     seeds: list[int],
     progress: Progress,
+    breakdown: bool = False,
 ) -> None:
     """The map score of a recording without any reference (SPEC section 6, "own test points"): the
     hold-out protocol with our SLAM's poses after loop closure for the training scans and the test points
@@ -647,7 +656,9 @@ def _own_maps_only(
     ours = np.asarray(result.poses_after_xytheta)
     cov = None if slam_cov is None else np.asarray(slam_cov)
     groups = mapper_rigid_groups(result, cfg.gppol.rigid_groups)
-    by_self = evaluate_holdout(rec, ours, seeds, cfg, progress, cov, block_scans=block, rigid_groups=groups)
+    by_self = evaluate_holdout(
+        rec, ours, seeds, cfg, progress, cov, block_scans=block, rigid_groups=groups, breakdown=breakdown
+    )
     mode = cfg.gppol.pose_covariances
     shared = rigid_groups_label(cfg.gppol.rigid_groups)
     pose_cov = f"SLAM {mode} covariances{shared}" if cov is not None else "none (laser noise only)"
@@ -667,6 +678,7 @@ def evaluate_suite(
     simulated: bool = True,
     progress: Progress | None = None,
     command: str | None = None,
+    breakdown: bool = False,
 ) -> dict[str, Any]:
     """Run every recording of ``data_dir`` (default :data:`DEFAULT_DATA_DIR`) and, with ``simulated``, the
     ``loop`` world of seeds 0-2. Returns ``datasets`` (one row per recording, SPEC section 3), ``data``,
@@ -674,7 +686,8 @@ def evaluate_suite(
     line ``command`` when the suite started, :func:`pipeline.provenance.provenance`) and ``table`` (one
     dict of printable cells per row).
 
-    ``only``: names to run (PipelineError naming the known ones when a name is unknown)."""
+    ``only``: names to run (PipelineError naming the known ones when a name is unknown). ``breakdown``: the
+    hold-out protocols' per-seed rows also hold ``evaluate map --breakdown``'s splits (``by_*`` keys)."""
     progress = progress or Progress()
     origin = provenance(command)
     config = load_config(config_path)
@@ -692,7 +705,7 @@ def evaluate_suite(
         raise PipelineError(f"{data}: no recordings found (CARMEN logs, ROS bags, KITTI folders)")
     used_seeds = list(seeds) if seeds else list(DEFAULT_SEEDS)
     t0 = time.perf_counter()
-    rows = [run_entry(e, config, used_seeds, slam_only, progress) for e in entries]
+    rows = [run_entry(e, config, used_seeds, slam_only, progress, breakdown) for e in entries]
     return {
         "data": str(data),
         "seeds": used_seeds,

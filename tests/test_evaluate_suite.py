@@ -21,6 +21,7 @@ from pipeline.evaluate_map import evaluate_holdout, reference_base_poses
 from pipeline.evaluate_suite import (
     discover,
     evaluate_slam_poses,
+    evaluate_suite,
     relations_beside,
     slam_poses_on_reference,
     table_row,
@@ -270,3 +271,27 @@ def test_rigid_groups_follow_our_scans_onto_the_reference_rows() -> None:
     np.testing.assert_array_equal(placed.offset_cov_body[rows], offsets)
     assert not np.delete(placed.offset_cov_body, rows, axis=0).any()
     assert RigidGroups(np.array([0, 0, 1, 1])).placed_on(7, rows).offset_cov_body is None
+
+
+def test_breakdown_splits_every_holdout_protocols_seed_rows(data_folder, tmp_path) -> None:
+    """``--breakdown``: the per-seed rows of the three hold-out protocols (reference poses, ours on the
+    reference's test points, ours on our own) hold evaluate map's splits, whose shares of each AUC's
+    shortfall add up to 1 - AUC; without it the rows have none."""
+    cfg = tmp_path / "fast.yaml"
+    cfg.write_text(json.dumps({"mapping": FAST}))  # JSON is YAML
+    out = evaluate_suite(
+        data_folder, only=["seattle"], seeds=[0], config_path=cfg, simulated=False, breakdown=True
+    )
+    maps = out["datasets"][0]["maps"]
+    for protocol in ("reference_poses", "slam_poses", "slam_poses_own_test_points"):
+        row = maps[protocol]["per_seed"][0]
+        for key in ("range_m", "hits_1m", "nearest_hit_m"):
+            for mapper in ("gppol", "gpfol", "grid"):
+                bins = row[f"by_{key}_{mapper}"]
+                assert sum(b["test_points"] for b in bins) == row["test_points"]
+                lost = sum(b["auc_lost_occupied"] for b in bins)
+                assert lost == pytest.approx(1 - row[f"auc_{mapper}"], abs=1e-9)
+    plain = evaluate_suite(data_folder, only=["seattle"], seeds=[0], config_path=cfg, simulated=False)
+    row = plain["datasets"][0]["maps"]["slam_poses"]["per_seed"][0]
+    assert not any(k.startswith("by_") for k in row)
+    assert row["auc_gppol"] == maps["slam_poses"]["per_seed"][0]["auc_gppol"]  # the same maps
