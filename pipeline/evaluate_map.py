@@ -440,6 +440,10 @@ def _bin_label(key: str, lo: float, hi: float) -> str:
     return f"{title} {lo:g}" if hi == lo + 1 else f"{title} {lo:g}-{hi - 1:g}"
 
 
+#: The two labels of a test point, as the per-bin keys name them (``auc_lost_occupied``, ``auc_lost_free``).
+LABELS = ("occupied", "free")
+
+
 def breakdown_table(rows: list[dict[str, Any]]) -> dict[str, str]:
     """Table rows of the per-seed breakdowns (:func:`_binned_aucs`), when the rows have them: per bin, the
     AUC of gppol / gpfol / grid as a mean over the seeds where it is defined ('-' where it never is) with
@@ -462,10 +466,6 @@ def breakdown_table(rows: list[dict[str, Any]]) -> dict[str, str]:
             )
             out[f"AUC lost (occupied + free) gppol / gpfol / grid, {where}"] = lost
     return out
-
-
-#: The two labels of a test point, as the per-bin keys name them (``auc_lost_occupied``, ``auc_lost_free``).
-LABELS = ("occupied", "free")
 
 
 def _mean_bin(rows: list[dict[str, Any]], key: str, i: int, field: str) -> str:
