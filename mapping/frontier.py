@@ -164,8 +164,8 @@ class ExplorationPlan:
       variance reduction on the map as it is;
     - ``views_xytheta`` (K, 3) the next-best views in the order chosen, ``view_gains`` (K,) the reduction
       each adds after the views before it;
-    - ``information`` (H, W) the expected variance reduction per cell of the K scans together (sums to the
-      total of ``view_gains``)."""
+    - ``information`` (H, W) float32 the expected variance reduction per cell of the K scans together (sums
+      to the total of ``view_gains``)."""
 
     knowledge: Knowledge
     frontier: BoolArray
@@ -174,7 +174,7 @@ class ExplorationPlan:
     candidate_gains: FloatArray
     views_xytheta: FloatArray
     view_gains: FloatArray
-    information: FloatArray
+    information: NDArray[np.float32]
 
     def layers(self) -> dict[str, NDArray[np.float32]]:
         """GridMap layers: ``frontier`` (1.0 on frontier cells, else 0.0) and ``information``, float32."""
@@ -200,10 +200,11 @@ def classify_knowledge(
         free_threshold,
     )
     unknown = rule.unknown(layers.variance)  # as every export calls a cell unknown (NaN included)
-    prob = np.asarray(layers.probability, dtype=np.float64)
+    prob = np.asarray(layers.probability)
+    # float64 thresholds: the comparison runs in float64 (cast chunk by chunk, no float64 copy of the map)
     with np.errstate(invalid="ignore"):
-        free = (prob <= free_threshold) & ~unknown
-        occupied = prob >= occupied_threshold
+        free = np.less_equal(prob, np.float64(free_threshold)) & ~unknown
+        occupied = np.greater_equal(prob, np.float64(occupied_threshold))
     return Knowledge(free, occupied, unknown, prior)
 
 
@@ -281,10 +282,11 @@ def candidate_poses(
     res = layers.resolution_m
     h, w = knowledge.free.shape
     if knowledge.occupied.any():
-        clear_m = np.sqrt(squared_distances_cells(knowledge.occupied)) * res
+        ok = knowledge.free & (
+            squared_distances_cells(knowledge.occupied) >= _min_squared_cells(res, settings.clearance_m)
+        )
     else:
-        clear_m = np.full(knowledge.occupied.shape, np.inf)
-    ok = knowledge.free & (clear_m >= settings.clearance_m)
+        ok = knowledge.free
     r_cells = max(1, round(max(settings.step_m, 2 * res) / res))
     unknown = np.pad(knowledge.unknown, r_cells, constant_values=settings.outside_unknown)
     dr, dc = np.mgrid[-r_cells : r_cells + 1, -r_cells : r_cells + 1]
@@ -313,15 +315,31 @@ def candidate_poses(
     return np.asarray(out, dtype=np.float64).reshape(-1, 3)
 
 
+def _min_squared_cells(resolution_m: float, clearance_m: float) -> int:
+    """The least squared distance ``k`` in cell widths (an integer, as distance transforms give them) with
+    ``sqrt(k) * resolution_m >= clearance_m``, in the float arithmetic of that expression."""
+    k = max(0, math.floor((clearance_m / resolution_m) ** 2) - 2)
+    while math.sqrt(k) * resolution_m < clearance_m:
+        k += 1
+    return k
+
+
 @nb.njit(cache=True)
-def _cast_scans(poses, offsets, range_max, grid, blocking, cell_gain, seen_by):
-    """Per pose (N, 3): the sum of ``cell_gain`` (ny, nx) over the cells its rays see (each once), rays
-    stopping in ``blocking`` cells or at the grid's edge. ``seen_by`` (ny, nx), int32 or int64, is scratch: on
-    return it holds, per cell, 1 + the last pose that saw it (0: none)."""
+def _cell_gain(v, noise_var):
+    """:func:`variance_reduction_per_cell` of one cell, in the same float64 operations."""
+    return v * v / (v + noise_var)
+
+
+@nb.njit(cache=True)
+def _cast_scans(poses, offsets, range_max, grid, blocking, variance, noise_var, seen_by, first_tag):
+    """Per pose (N, 3): the sum of :func:`variance_reduction_per_cell` of ``variance`` (ny, nx, float64)
+    over the cells its rays see (each once), rays stopping in ``blocking`` cells or at the grid's edge.
+    ``seen_by`` (ny, nx), int32 or int64, is scratch: pose ``i`` marks the cells it sees with ``first_tag + i
+    + 1``, so one scratch serves many calls as long as their tags differ."""
     n = poses.shape[0]
     gains = np.zeros(n)
     for i in range(n):
-        tag = i + 1
+        tag = first_tag + i + 1
         x = poses[i, 0]
         y = poses[i, 1]
         g = 0.0
@@ -335,13 +353,58 @@ def _cast_scans(poses, offsets, range_max, grid, blocking, cell_gain, seen_by):
                     break
                 if seen_by[w.iy, w.ix] != tag:
                     seen_by[w.iy, w.ix] = tag
-                    g += cell_gain[w.iy, w.ix]
+                    g += _cell_gain(variance[w.iy, w.ix], noise_var)
                 if blocking[w.iy, w.ix]:
                     break
                 if s < steps:
                     w = walk_next(w)
         gains[i] = g
     return gains
+
+
+@nb.njit(cache=True)
+def _seen_cells(pose, offsets, range_max, grid, blocking, seen_by, tag):
+    """The flat indices (row-major, ``iy * nx + ix``) of the cells one (3,) pose's rays see, each once, in
+    the order they are first seen; ``seen_by`` scratch as in :func:`_cast_scans`, marked with ``tag``."""
+    out = np.empty(1024, np.int64)
+    count = 0
+    for b in range(offsets.shape[0]):
+        a = pose[2] + offsets[b]
+        w, _ex, _ey, steps = segment_walk(
+            grid,
+            pose[0],
+            pose[1],
+            pose[0] + range_max * math.cos(a),
+            pose[1] + range_max * math.sin(a),
+            False,
+        )
+        for s in range(steps + 1):
+            if not in_grid(grid, w.ix, w.iy):
+                break
+            if seen_by[w.iy, w.ix] != tag:
+                seen_by[w.iy, w.ix] = tag
+                if count == out.shape[0]:
+                    grown = np.empty(2 * count, np.int64)
+                    grown[:count] = out
+                    out = grown
+                out[count] = w.iy * grid.nx + w.ix
+                count += 1
+            if blocking[w.iy, w.ix]:
+                break
+            if s < steps:
+                w = walk_next(w)
+    return out[:count].copy()
+
+
+@nb.njit(cache=True)
+def _effective_variance_into(variance, prior, out):
+    """``out`` (float64, the shape of ``variance``): the variance with NaN and infinities (no estimate)
+    read as ``prior`` and negative rounding clipped to 0, in one pass."""
+    v, o = variance.ravel(), out.ravel()
+    for i in range(v.size):
+        x = np.float64(v[i])
+        o[i] = max(x, 0.0) if np.isfinite(x) else prior
+    return out
 
 
 def _grid_of(layers: MapLayers) -> GridGeometry:
@@ -357,56 +420,72 @@ def variance_reduction_per_cell(variance: FloatArray, noise_var: float) -> Float
 
 
 @nb.njit(cache=True, parallel=True)
-def _cast_scans_parallel(poses, offsets, range_max, grid, blocking, cell_gain, seen_by):
-    """:func:`_cast_scans` of the (N, 3) poses in parallel runs, one per zeroed (ny, nx) scratch of
-    ``seen_by`` (C, ny, nx)."""
+def _cast_scans_parallel(poses, offsets, range_max, grid, blocking, variance, noise_var, seen_by, first_tag):
+    """:func:`_cast_scans` of the (N, 3) poses in parallel runs, one per (ny, nx) scratch of ``seen_by``
+    (C, ny, nx), pose ``i`` tagged ``first_tag + i + 1`` in any run."""
     n = poses.shape[0]
     chunks = seen_by.shape[0]
     gains = np.zeros(n)
     for c in nb.prange(chunks):
         lo = c * n // chunks
         hi = (c + 1) * n // chunks
-        gains[lo:hi] = _cast_scans(poses[lo:hi], offsets, range_max, grid, blocking, cell_gain, seen_by[c])
+        gains[lo:hi] = _cast_scans(
+            poses[lo:hi], offsets, range_max, grid, blocking, variance, noise_var, seen_by[c], first_tag + lo
+        )
     return gains
 
 
-def _cast_args(
-    poses_xytheta: FloatArray,
-    layers: MapLayers,
-    occupied: BoolArray,
-    cell_gain: FloatArray,
-    laser: LaserModel,
-) -> tuple:
-    """The arguments of :func:`_cast_scans` but its scratch, as compiled code takes them."""
-    return (
-        np.ascontiguousarray(np.asarray(poses_xytheta, dtype=np.float64).reshape(-1, 3)),
-        np.ascontiguousarray(laser.beam_offsets_rad()),
-        float(laser.range_max_m),
-        _grid_of(layers),
-        np.ascontiguousarray(occupied, dtype=np.bool_),
-        np.ascontiguousarray(cell_gain, dtype=np.float64),
-    )
+class _RayCaster:
+    """Simulated scans through one map: the compiled walks' arguments and one scratch raster per thread,
+    allocated once and reused by every call (their tags never repeat), so that a plan over a big building
+    touches each scratch page once instead of once per round."""
 
+    def __init__(self, layers: MapLayers, occupied: BoolArray, laser: LaserModel, threads: int) -> None:
+        self.offsets = np.ascontiguousarray(laser.beam_offsets_rad())
+        self.range_max = float(laser.range_max_m)
+        self.grid = _grid_of(layers)
+        self.blocking = np.ascontiguousarray(occupied, dtype=np.bool_)
+        # numpy's zeros come from the OS as zero pages, touched only where rays pass (a compiled fill would
+        # write every cell of a big building's map)
+        self.seen_by = np.zeros((max(1, threads), *self.blocking.shape), np.int32)
+        self.tags_used = 0
 
-def _gains(
-    poses_xytheta: FloatArray,
-    layers: MapLayers,
-    occupied: BoolArray,
-    cell_gain: FloatArray,
-    laser: LaserModel,
-) -> FloatArray:
-    """(N,) the summed ``cell_gain`` each pose's scan sees, the poses scanned in parallel."""
-    args = _cast_args(poses_xytheta, layers, occupied, cell_gain, laser)
-    chunks = max(1, min(args[0].shape[0], nb.get_num_threads()))
-    # numpy's zeros come from the OS as zero pages, touched only where rays pass (a compiled fill would
-    # write every cell of a big building's map per run)
-    return _cast_scans_parallel(*args, np.zeros((chunks, *occupied.shape), np.int32))
+    def _tags(self, n: int) -> int:
+        first = self.tags_used
+        self.tags_used += n
+        if self.tags_used >= np.iinfo(np.int32).max:
+            raise OverflowError("too many simulated scans for one ray caster")
+        return first
+
+    def gains(self, poses_xytheta: FloatArray, variance: FloatArray, noise_var: float) -> FloatArray:
+        """(N,) per (N, 3) pose: the summed ``v^2 / (v + noise_var)`` of the (H, W) float64 ``variance``
+        over the cells its scan sees, the poses scanned in parallel."""
+        poses = np.ascontiguousarray(np.asarray(poses_xytheta, dtype=np.float64).reshape(-1, 3))
+        chunks = max(1, min(poses.shape[0], self.seen_by.shape[0]))
+        return _cast_scans_parallel(
+            poses,
+            self.offsets,
+            self.range_max,
+            self.grid,
+            self.blocking,
+            np.ascontiguousarray(variance, dtype=np.float64),
+            float(noise_var),
+            self.seen_by[:chunks],
+            self._tags(poses.shape[0]),
+        )
+
+    def seen(self, pose_xytheta: FloatArray) -> NDArray[np.int64]:
+        """The flat (row-major) indices of the cells one (3,) pose's scan sees."""
+        pose = np.ascontiguousarray(np.asarray(pose_xytheta, dtype=np.float64).reshape(3))
+        return _seen_cells(
+            pose, self.offsets, self.range_max, self.grid, self.blocking, self.seen_by[0], self._tags(1) + 1
+        )
 
 
 def _effective_variance(layers: MapLayers, prior: float) -> FloatArray:
-    """(H, W) variance with NaN (no estimate) read as the prior."""
-    v = np.asarray(layers.variance, dtype=np.float64)
-    return np.where(np.isfinite(v), np.maximum(v, 0.0), prior)
+    """(H, W) float64 variance with NaN and infinities (no estimate) read as the prior."""
+    v = np.ascontiguousarray(layers.variance)
+    return _effective_variance_into(v, float(prior), np.empty(v.shape, np.float64))
 
 
 def expected_variance_reduction(
@@ -418,20 +497,18 @@ def expected_variance_reduction(
 ) -> FloatArray:
     """(N,) expected reduction of the summed latent variance of the map by one scan from each of the (N, 3)
     map-frame poses (m, m, rad), rays stopped by the (H, W) ``occupied`` cells (module docstring)."""
-    prior = params.prior_variance
-    gain = variance_reduction_per_cell(_effective_variance(layers, prior), params.noise_var)
-    return _gains(poses_xytheta, layers, occupied, gain, laser or LaserModel())
+    variance = _effective_variance(layers, params.prior_variance)
+    caster = _RayCaster(layers, occupied, laser or LaserModel(), nb.get_num_threads())
+    return caster.gains(poses_xytheta, variance, params.noise_var)
 
 
 def visible_cells(
     pose_xytheta: FloatArray, layers: MapLayers, occupied: BoolArray, laser: LaserModel | None = None
 ) -> BoolArray:
     """(H, W) the cells one scan from the (3,) pose sees."""
-    seen_by = np.zeros(occupied.shape, np.int64)
-    _cast_scans(
-        *_cast_args(pose_xytheta, layers, occupied, np.zeros(occupied.shape), laser or LaserModel()), seen_by
-    )
-    return seen_by > 0
+    seen = np.zeros(occupied.shape, np.bool_)
+    seen.reshape(-1)[_RayCaster(layers, occupied, laser or LaserModel(), 1).seen(pose_xytheta)] = True
+    return seen
 
 
 #: Candidates whose gain bounds are recomputed together in a round of the lazy greedy choice.
@@ -451,21 +528,21 @@ def plan_exploration(
     clusters = cluster_frontier(frontier, layers, s.min_cluster_cells)
     anchors = frontier_anchors(clusters, layers, s.anchor_spacing_m)
     candidates = candidate_poses(anchors, knowledge, layers, s)
-    variance = _effective_variance(layers, knowledge.prior_variance)
-    current = variance.copy()
+    current = _effective_variance(layers, knowledge.prior_variance)  # updated where views see
     noise = params.noise_var
+    caster = _RayCaster(layers, knowledge.occupied, s.laser, nb.get_num_threads())
     first = np.zeros(candidates.shape[0])
     chosen: list[int] = []
     view_gains: list[float] = []
+    seen_cells: list[NDArray[np.int64]] = []
     # Lazy greedy (Minoux): a view's gain only shrinks as earlier views lower the variance (v^2 / (v + s^2)
     # grows with v), so the gains of the last round bound this round's. Recomputing the best bounds until
     # the first of the maxima is fresh picks exactly what recomputing every candidate would, ties included.
     bound = np.zeros(candidates.shape[0])
     fresh = np.zeros(candidates.shape[0], dtype=bool)
-    cell_gain = variance_reduction_per_cell(current, noise)  # kept up to date where views see
     for k in range(min(s.n_views, candidates.shape[0])):
         if k == 0:
-            first = _gains(candidates, layers, knowledge.occupied, cell_gain, s.laser)
+            first = caster.gains(candidates, current, noise)
             bound = first.copy()
             fresh[:] = True
         else:
@@ -477,7 +554,7 @@ def plan_exploration(
                     break
                 stale = np.flatnonzero(~fresh)
                 batch = stale[np.argsort(-bound[stale], kind="stable")[:LAZY_BATCH]]
-                bound[batch] = _gains(candidates[batch], layers, knowledge.occupied, cell_gain, s.laser)
+                bound[batch] = caster.gains(candidates[batch], current, noise)
                 fresh[batch] = True
         best = int(np.argmax(bound))
         if not bound[best] > 0:
@@ -485,10 +562,20 @@ def plan_exploration(
         chosen.append(best)
         view_gains.append(float(bound[best]))
         bound[best] = -np.inf  # chosen: never again
-        seen = np.flatnonzero(visible_cells(candidates[best], layers, knowledge.occupied, s.laser))
+        seen = caster.seen(candidates[best])
+        seen_cells.append(seen)
         flat = current.reshape(-1)  # a view: current is contiguous
         flat[seen] = flat[seen] * noise / (flat[seen] + noise)
-        cell_gain.reshape(-1)[seen] = variance_reduction_per_cell(flat[seen], noise)
+    # the views changed the variance only where they saw: the information is zero elsewhere
+    information = np.zeros(layers.shape, np.float32)
+    if seen_cells:
+        seen = np.unique(np.concatenate(seen_cells))
+        before = _effective_variance_into(
+            np.ascontiguousarray(layers.variance).reshape(-1)[seen],
+            float(knowledge.prior_variance),
+            np.empty(seen.size, np.float64),
+        )
+        information.reshape(-1)[seen] = before - current.reshape(-1)[seen]
     return ExplorationPlan(
         knowledge=knowledge,
         frontier=frontier,
@@ -497,7 +584,7 @@ def plan_exploration(
         candidate_gains=first,
         views_xytheta=candidates[chosen].reshape(-1, 3),
         view_gains=np.asarray(view_gains, dtype=np.float64),
-        information=variance - current,
+        information=information,
     )
 
 

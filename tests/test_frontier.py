@@ -138,7 +138,8 @@ def test_next_best_views_stand_in_free_space_and_look_through_the_door() -> None
     assert abs(math.atan2(math.sin(th), math.cos(th))) < 1e-9  # facing +x, the door
     # greedy on a shrinking variance: each view adds no more than the one before
     assert np.all(np.diff(plan.view_gains) <= 1e-9) and plan.view_gains[-1] > 0
-    assert plan.information.sum() == pytest.approx(plan.view_gains.sum(), rel=1e-9)
+    assert plan.information.dtype == np.float32  # as exported
+    assert plan.information.sum(dtype=np.float64) == pytest.approx(plan.view_gains.sum(), rel=1e-6)
     out = frontier_layers(layers, PARAMS, settings)
     assert set(out) == {"frontier", "information"}
     assert out["frontier"].dtype == np.float32 and out["frontier"].sum() == len(DOOR_ROWS)
@@ -147,7 +148,7 @@ def test_next_best_views_stand_in_free_space_and_look_through_the_door() -> None
 def _plain_greedy(layers: MapLayers, settings: ExplorationSettings) -> tuple[list[int], list[float]]:
     """The greedy choice recomputing every candidate's gain each round, each scan cast one after the other
     (what the lazy choice, cast in parallel, must equal)."""
-    from mapping.frontier import _cast_args, _cast_scans, candidate_poses, cluster_frontier, frontier_anchors
+    from mapping.frontier import _cast_scans, _RayCaster, candidate_poses, cluster_frontier, frontier_anchors
 
     s = settings
     k = classify_knowledge(
@@ -163,10 +164,12 @@ def _plain_greedy(layers: MapLayers, settings: ExplorationSettings) -> tuple[lis
     )
     chosen: list[int] = []
     gains_out: list[float] = []
+    c = _RayCaster(layers, k.occupied, s.laser, threads=1)
     for _ in range(min(s.n_views, len(candidates))):
-        gain = variance_reduction_per_cell(current, PARAMS.noise_var)
         seen_by = np.zeros(layers.shape, np.int64)
-        gains = _cast_scans(*_cast_args(candidates, layers, k.occupied, gain, s.laser), seen_by)
+        gains = _cast_scans(
+            candidates, c.offsets, c.range_max, c.grid, c.blocking, current, PARAMS.noise_var, seen_by, 0
+        )
         gains[chosen] = -np.inf
         best = int(np.argmax(gains))
         if not gains[best] > 0:
@@ -221,3 +224,26 @@ def test_on_a_gp_map_of_the_loop_world_the_layers_fit_and_the_best_view_gains() 
     assert plan.view_gains[0] > 0 and plan.candidate_gains.max() == pytest.approx(plan.view_gains[0])
     for vx, vy, _ in plan.views_xytheta:
         assert plan.knowledge.free[cell_of(layers, (vx, vy))]
+
+
+@pytest.mark.parametrize("res_m", [0.05, 0.1, 0.3, 0.25])
+@pytest.mark.parametrize("clearance_m", [0.0, 0.1, 0.3, 0.35, 1.0, 2.5])
+def test_clearance_by_squared_cells_equals_the_metre_comparison(res_m: float, clearance_m: float) -> None:
+    """The candidates' clearance test on integer squared cell distances keeps exactly the cells that
+    ``sqrt(d2) * res >= clearance`` keeps."""
+    from mapping.frontier import _min_squared_cells
+
+    d2 = np.arange(0, 2000, dtype=np.float64)
+    expected = np.sqrt(d2) * res_m >= clearance_m
+    np.testing.assert_array_equal(d2 >= _min_squared_cells(res_m, clearance_m), expected)
+
+
+def test_effective_variance_reads_missing_estimates_as_the_prior() -> None:
+    from mapping.frontier import _effective_variance
+
+    layers = room()
+    layers.variance[0, :4] = [np.nan, np.inf, -1e-9, 0.25]
+    v = _effective_variance(layers, PRIOR)
+    assert v.dtype == np.float64
+    np.testing.assert_array_equal(v[0, :4], [PRIOR, PRIOR, 0.0, np.float64(np.float32(0.25))])
+    np.testing.assert_array_equal(v[1:], layers.variance[1:].astype(np.float64))
