@@ -306,9 +306,9 @@ def write_layers_npz(path: Path, layers: MapLayers) -> Path:
     if layers.placement_sigma_m is not None:
         extra["placement_sigma_m"] = np.asarray(layers.placement_sigma_m, dtype=np.float32)
     arrays = dict(
-        probability=layers.probability.astype(np.float32),
-        mean=layers.mean.astype(np.float32),
-        variance=layers.variance.astype(np.float32),
+        probability=np.asarray(layers.probability, dtype=np.float32),  # no copy of float32 layers
+        mean=np.asarray(layers.mean, dtype=np.float32),
+        variance=np.asarray(layers.variance, dtype=np.float32),
         resolution_m=np.float64(layers.resolution_m),
         origin_xy_m=np.asarray(layers.origin_xy_m, dtype=np.float64),
         frame_id=np.str_(layers.frame_id),

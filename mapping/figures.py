@@ -282,6 +282,25 @@ def _over(dst: NDArray[np.uint8], src: NDArray[np.uint8]) -> None:
                     dst[i, j, c] = np.uint8((src[i, j, c] * a + dst[i, j, c] * (255 - a) + 127) // 255)
 
 
+#: Rows of a map image coloured at a time by :func:`_image_rgba`.
+COLOUR_BAND_ROWS = 256
+
+
+def _image_rgba(image: Any) -> NDArray[np.uint8]:
+    """(H, W, 4) uint8: :meth:`~matplotlib.image.AxesImage.to_rgba` of the image's array, ``COLOUR_BAND_ROWS``
+    rows at a time. Colouring by a scaled norm is cell by cell, so the bands give the same bytes; a big map's
+    float temporaries (matplotlib's masked copies, the look-up indices) then stay a band's size."""
+    values = image.get_array()
+    alpha = image.get_alpha()
+    if values.ndim != 2 or not image.norm.scaled() or np.ndim(alpha) != 0:
+        return image.to_rgba(values, alpha=alpha, bytes=True)
+    out = np.empty((*values.shape, 4), dtype=np.uint8)
+    for r0 in range(0, values.shape[0], COLOUR_BAND_ROWS):
+        band = slice(r0, r0 + COLOUR_BAND_ROWS)
+        out[band] = image.to_rgba(values[band], alpha=alpha, bytes=True)
+    return out
+
+
 def _paste_maps(fig: Figure) -> NDArray[np.uint8] | None:
     """The (H, W, 3) uint8 pixels of ``fig`` with its map images pasted one to one (see
     :func:`save_figure`), or None when it has no image or one that does not fill its panel exactly."""
@@ -296,9 +315,7 @@ def _paste_maps(fig: Figure) -> NDArray[np.uint8] | None:
             panels.append((ax, image, where))
     if not panels:
         return None
-    colours = [
-        image.to_rgba(image.get_array(), alpha=image.get_alpha(), bytes=True) for _, image, _ in panels
-    ]
+    colours = [_image_rgba(image) for _, image, _ in panels]
     axes = {id(ax): ax for ax, _, _ in panels}.values()
     saved = [(ax, ax.patch.get_alpha()) for ax in axes]
     fig_alpha = fig.patch.get_alpha()

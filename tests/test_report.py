@@ -11,6 +11,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import matplotlib.image
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
@@ -270,6 +271,20 @@ def test_pasted_maps_equal_matplotlib_drawn_ones(tmp_path, kind) -> None:
     diff = np.abs(mine - theirs).max(axis=2)
     assert diff.max() <= 3, f"{(diff > 3).sum()} pixels differ by more than 3 levels"
     assert diff.mean() < (1.0 if kind == "trajectory" else 0.01)  # a translucent map: rounding everywhere
+
+
+@pytest.mark.parametrize("kind", ["probability", "variance", "classified", "difference", "trajectory"])
+def test_map_images_coloured_in_bands_equal_one_pass(kind, monkeypatch) -> None:
+    """The pasted maps are coloured a band of rows at a time (bounded temporaries on big maps): the bytes
+    equal matplotlib's colouring of the whole image, NaN cells, masks, norms and alpha included."""
+    monkeypatch.setattr(figures, "COLOUR_BAND_ROWS", 7)
+    fig = _figure_kinds()[kind]()
+    images = [im for ax in fig.axes for im in ax.get_images()]
+    assert images
+    for image in images:
+        whole = image.to_rgba(image.get_array(), alpha=image.get_alpha(), bytes=True)
+        np.testing.assert_array_equal(figures._image_rgba(image), whole)
+    plt.close(fig)
 
 
 def test_png_encoding_in_a_pool_writes_the_same_files(tmp_path) -> None:
