@@ -180,7 +180,7 @@ class ExplorationPlan:
         """GridMap layers: ``frontier`` (1.0 on frontier cells, else 0.0) and ``information``, float32."""
         return {
             "frontier": self.frontier.astype(np.float32),
-            "information": self.information.astype(np.float32),
+            "information": np.asarray(self.information, dtype=np.float32),  # no copy: already float32
         }
 
 

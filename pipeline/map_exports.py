@@ -216,9 +216,14 @@ def _write_bag(
 ) -> Path:
     """The maps bag (:func:`datasets.ros.maps.write_map_bag`) of the classified ``maps``, with each map's
     exploration plan when ``settings`` is given; returns its path."""
-    plans = {}
+    # each plan's layers and views only: its masks and clusters are dropped before the next map's plan
+    plan_layers: dict[str, dict[str, NDArray[np.float32]]] = {}
+    views: dict[str, NDArray] = {}
     if settings is not None:
-        plans = {name: plan_exploration(layers, params, settings) for name, layers in maps.items()}
+        for name, layers in maps.items():
+            plan = plan_exploration(layers, params, settings)
+            plan_layers[name], views[name] = plan.layers(), plan.views_xytheta
+            del plan
     rasters = {
         name: Raster(
             {
@@ -227,7 +232,7 @@ def _write_bag(
                 "variance": m.variance,
                 "unknown": np.asarray(m.unknown, dtype=np.float32),
                 **({} if m.placement_sigma_m is None else {"placement_sigma": m.placement_sigma_m}),
-                **(plans[name].layers() if name in plans else {}),
+                **plan_layers.pop(name, {}),
             },
             m.resolution_m,
             m.origin_xy_m,
@@ -247,6 +252,6 @@ def _write_bag(
         paths=trajectories,
         loop_closures_xy_m=closures_xy_m,
         tf_trajectory=None if tf_name is None else trajectories[tf_name],
-        views_xytheta={name: plan.views_xytheta for name, plan in plans.items()},
+        views_xytheta=views,
     )
     return bag
