@@ -296,6 +296,7 @@ def remap_run(
                 "bounds_xy_m": list(map_bounds),
             },
             "timings_s": {**timer.seconds, "total": timer.total()},
+            "cpu_s": timer.cpu_summary(),
         }
         summary["table"] = {
             "run": str(run_dir),

@@ -384,6 +384,8 @@ def make_summary(
     for name, sec in timings.items():
         table[f"wall time {name} (s)"] = round(sec, 2)
     table["real-time factor"] = round(data_s / timings["total"], 1) if timings["total"] > 0 else None
+    user_s, system_s = timer.total_cpu()
+    table["CPU time user / system (s)"] = f"{user_s:.1f} / {system_s:.1f}"
     return {
         "input": str(input_path),
         "format": rec.format,
@@ -414,6 +416,7 @@ def make_summary(
         "slam": s,
         "data_duration_s": data_s,
         "timings_s": timings,
+        "cpu_s": timer.cpu_summary(),
         "realtime_factor": data_s / timings["total"] if timings["total"] > 0 else None,
         "table": table,
     }

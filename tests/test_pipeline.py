@@ -169,6 +169,14 @@ def test_loop_run_folder_is_complete(loop_run) -> None:
         "export",
         "total",
     }
+    # CPU per stage: every timed stage, none negative, together within the run's total
+    cpu = summary["cpu_s"]
+    assert set(cpu) == set(summary["timings_s"])
+    assert all(c["user"] >= 0 and c["system"] >= 0 for c in cpu.values())
+    stages = [c for name, c in cpu.items() if name != "total"]
+    total = cpu["total"]["user"] + cpu["total"]["system"]
+    assert sum(c["user"] + c["system"] for c in stages) <= total + 0.05
+    assert cpu["slam"]["user"] > 0 and cpu["total"]["user"] > cpu["slam"]["user"]
     assert not list(loop_run.parent.glob("*.partial-*"))
 
 

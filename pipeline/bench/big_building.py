@@ -1,11 +1,12 @@
 """The big-building part of ``bench``: ``run`` end to end on the fr-clinic hospital log (4,820 s of data,
 maps of about 15 M cells each), so that a map whose cost follows its bounding box shows as a regression.
 
-Reported: the wall time and real-time factor of the run, its stage timings, the cells of a map and, per map
-(before and after loop closure), the cells the GP solved and those beyond every training input's reach
-(:mod:`mapping.reach`, answered with the prior) with the rate of each. Compare the real-time factor with
-``pipeline_intel_realtime_factor`` of the same ``bench`` (``big_building_realtime_ratio_to_intel``):
-machines differ, ratios of runs made one after the other do not. Timings depend on the machine's load.
+Reported: the wall time and real-time factor of the run, its stage timings (wall, and CPU user / system), the
+cells of a map and, per map (before and after loop closure), the cells the GP solved and those beyond every
+training input's reach (:mod:`mapping.reach`, answered with the prior) with the rate of each. Compare the
+real-time factor with ``pipeline_intel_realtime_factor`` of the same ``bench``
+(``big_building_realtime_ratio_to_intel``): machines differ, ratios of runs made one after the other do not.
+Timings depend on the machine's load.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ def bench_big_building(progress: Progress | None = None, path: str | Path = FR_C
         "big_building_wall_s": wall,
         "big_building_realtime_factor": summary["data_duration_s"] / wall,
         "big_building_stages_s": summary["timings_s"],
+        "big_building_stages_cpu_s": summary["cpu_s"],
         "big_building_map_cells": h * w,
         "big_building_render": {
             name: render_rates(stats) for name, stats in summary["map"].get("render", {}).items()

@@ -40,5 +40,6 @@ def bench_pipeline(progress: Progress | None = None, path: str | Path = INTEL) -
         "pipeline_intel_realtime_factor": summary["data_duration_s"] / wall,
         "pipeline_intel_mapper": config.mapping.mapper,
         "pipeline_intel_stages_s": summary["timings_s"],
+        "pipeline_intel_stages_cpu_s": summary["cpu_s"],
         "pipeline_intel_map_cells": summary["map"]["shape_hw"][0] * summary["map"]["shape_hw"][1],
     }
