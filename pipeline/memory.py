@@ -20,17 +20,25 @@ import sys
 #: mallopt(3) parameters (glibc's malloc.h).
 M_TRIM_THRESHOLD = -1
 M_MMAP_MAX = -4
+M_ARENA_MAX = -8
 #: The largest trim threshold mallopt takes (an int): the heap is trimmed only when 2 GiB at its top are free.
 NEVER_TRIM_BYTES = 2**31 - 1
 #: Environment variables through which a user sets glibc's malloc; any of them set: their choice stands.
-USER_MALLOC_SETTINGS = ("MALLOC_MMAP_MAX_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_THRESHOLD_")
+USER_MALLOC_SETTINGS = (
+    "MALLOC_MMAP_MAX_",
+    "MALLOC_TRIM_THRESHOLD_",
+    "MALLOC_MMAP_THRESHOLD_",
+    "MALLOC_ARENA_MAX",
+)
 
 
 def keep_freed_memory() -> bool:
-    """Big blocks from the heap (``M_MMAP_MAX`` 0) and no trimming (``M_TRIM_THRESHOLD`` at its maximum), for
-    the allocations made from now on. Returns True when applied: glibc on Linux, and the user has set none of
-    :data:`USER_MALLOC_SETTINGS` nor a malloc tunable in ``GLIBC_TUNABLES``; False otherwise (nothing
-    changed)."""
+    """Big blocks from the heap (``M_MMAP_MAX`` 0), no trimming (``M_TRIM_THRESHOLD`` at its maximum) and one
+    arena for every thread (``M_ARENA_MAX`` 1), for the allocations made from now on. Without the last, a
+    thread's own arena (heaps of 64 MiB at most) would still map each bigger block apart and unmap it when
+    freed: the export's writer threads and the compiled code's workers allocate the biggest blocks.
+    Returns True when applied: glibc on Linux, and the user has set none of :data:`USER_MALLOC_SETTINGS`
+    nor a malloc tunable in ``GLIBC_TUNABLES``; False otherwise (nothing changed)."""
     if not sys.platform.startswith("linux"):
         return False
     if any(name in os.environ for name in USER_MALLOC_SETTINGS):
@@ -45,4 +53,8 @@ def keep_freed_memory() -> bool:
         return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt.restype = ctypes.c_int
-    return bool(mallopt(M_MMAP_MAX, 0)) and bool(mallopt(M_TRIM_THRESHOLD, NEVER_TRIM_BYTES))
+    return (
+        bool(mallopt(M_MMAP_MAX, 0))
+        and bool(mallopt(M_TRIM_THRESHOLD, NEVER_TRIM_BYTES))
+        and bool(mallopt(M_ARENA_MAX, 1))
+    )
