@@ -2,12 +2,12 @@
 
 A run's big steps (rendering a building's maps, writing their exports) allocate and free arrays of hundreds of
 megabytes. glibc's malloc gives every block above its mmap threshold (at most 32 MiB) a mapping of its own and
-unmaps it when freed, so the next big array is faulted in page by page again. On virtual machines whose
-freed pages go back to the host (free page reporting, memory ballooning; the project's development and CI
-machines are such) a fault costs many times a bare machine's. :func:`keep_freed_memory` asks glibc
-(``mallopt(3)``) to serve big blocks from its heap and never to trim it: what one step frees, the next reuses
-without faults. The process keeps its peak memory until it exits; the peak itself does not grow (``bench``'s
-``peak_rss_mib``).
+unmaps it when freed, so the next big array is faulted in page by page again. On virtual machines whose freed
+pages go back to the host (free page reporting, memory ballooning; the project's development and CI machines
+are such) a fault costs many times a bare machine's. :func:`keep_freed_memory` asks glibc (``mallopt(3)``) to
+serve big blocks from its heap, never to trim it, and to give every thread that one heap: what one step frees,
+the next reuses without faults, in whichever thread. The process keeps its peak memory until it exits; the
+peak itself does not grow (``bench``'s ``peak_rss_mib``).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def keep_freed_memory() -> bool:
     """Big blocks from the heap (``M_MMAP_MAX`` 0), no trimming (``M_TRIM_THRESHOLD`` at its maximum) and one
     arena for every thread (``M_ARENA_MAX`` 1), for the allocations made from now on. Without the last, a
     thread's own arena (heaps of 64 MiB at most) would still map each bigger block apart and unmap it when
-    freed: the export's writer threads and the compiled code's workers allocate the biggest blocks.
+    freed, and the export's writer threads allocate some of the biggest blocks.
     Returns True when applied: glibc on Linux, and the user has set none of :data:`USER_MALLOC_SETTINGS`
     nor a malloc tunable in ``GLIBC_TUNABLES``; False otherwise (nothing changed)."""
     if not sys.platform.startswith("linux"):
