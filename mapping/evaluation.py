@@ -143,7 +143,11 @@ def nearest_hit_m(hits_xy_m: FloatArray, points_xy_m: FloatArray) -> FloatArray:
 
 
 def auc_by_bins(
-    probability: FloatArray, labels: NDArray[np.bool_], values: FloatArray, edges: Sequence[float]
+    probability: FloatArray,
+    labels: NDArray[np.bool_],
+    values: FloatArray,
+    edges: Sequence[float],
+    shortfall: FloatArray | None = None,
 ) -> list[dict]:
     """The test points split by ``values`` (T,) into the bins ``[edges[i], edges[i + 1])`` (the last one
     closed): per bin ``from``, ``to`` (None: no upper end), ``test_points``, ``occupied``, ``auc`` of
@@ -153,11 +157,14 @@ def auc_by_bins(
     ``auc_lost_free``: :func:`mapping.metrics.auc_shortfall_per_point` summed over the bin; over all bins
     each sums to ``1 - AUC``; None unless both labels occur among all the points). Where a map wins or
     loses: near or far from the sensor, where returns are dense or sparse; the bin's AUC compares its own
-    points, its lost share ranks them against all the others."""
+    points, its lost share ranks them against all the others. ``shortfall``: those per-point parts when the
+    caller already has them (one ranking serves every split of the same scores)."""
     p = np.asarray(probability, dtype=np.float64)
     y = np.asarray(labels, dtype=bool)
     v = np.asarray(values, dtype=np.float64)
-    lost = auc_shortfall_per_point(p, y) if (y.any() and not y.all()) else None
+    lost = None
+    if y.any() and not y.all():
+        lost = auc_shortfall_per_point(p, y) if shortfall is None else np.asarray(shortfall, dtype=np.float64)
     out = []
     for i in range(len(edges) - 1):
         lo, hi = float(edges[i]), float(edges[i + 1])

@@ -58,7 +58,7 @@ from mapping.evaluation import (
     observed_points,
 )
 from mapping.gppol import RigidGroups
-from mapping.metrics import log_loss, roc_auc
+from mapping.metrics import auc_shortfall_per_point, log_loss, roc_auc
 from pipeline.artifacts import mapper_covariances, mapper_rigid_groups, rigid_groups_label
 from pipeline.config import load_config
 from pipeline.errors import PipelineError
@@ -276,8 +276,14 @@ def breakdown_values(beams: Beams, points: np.ndarray, ranges_m: np.ndarray) -> 
 def _binned_aucs(
     p: np.ndarray, labels: np.ndarray, breakdown: dict[str, np.ndarray], name: str
 ) -> dict[str, Any]:
-    """``by_KEY_NAME`` for each breakdown KEY: :func:`mapping.evaluation.auc_by_bins` of the scores ``p``."""
-    return {f"by_{key}_{name}": auc_by_bins(p, labels, breakdown[key], edges) for key, edges in BREAKDOWNS}
+    """``by_KEY_NAME`` for each breakdown KEY: :func:`mapping.evaluation.auc_by_bins` of the scores ``p``
+    (the points' shares of the AUC's shortfall ranked once for all the splits)."""
+    y = np.asarray(labels, dtype=bool)
+    lost = auc_shortfall_per_point(p, y) if (y.any() and not y.all()) else None
+    return {
+        f"by_{key}_{name}": auc_by_bins(p, y, breakdown[key], edges, shortfall=lost)
+        for key, edges in BREAKDOWNS
+    }
 
 
 def log_loss_means(rows: list[dict[str, Any]]) -> dict[str, float | None]:

@@ -25,7 +25,7 @@ from mapping.evaluation import (
     rendered_ground_truth_auc,
 )
 from mapping.exports import MapLayers
-from mapping.metrics import roc_auc
+from mapping.metrics import auc_shortfall_per_point, roc_auc
 
 
 def test_split_is_deterministic_block_structured_and_disjoint() -> None:
@@ -122,6 +122,9 @@ def test_auc_by_bins_counts_and_scores_each_bin() -> None:
     assert rows[0]["auc_lost_occupied"] == 0.0 and rows[0]["auc_lost_free"] > 0  # free points only there
     one_label = auc_by_bins(p[~labels], labels[~labels], values[~labels], (0.0, 5.0, 10.0))
     assert one_label[0]["auc_lost_free"] is None and one_label[0]["auc"] is None
+    # the shares ranked once by the caller give the same rows
+    shares = auc_shortfall_per_point(p, labels)
+    assert auc_by_bins(p, labels, values, (0.0, 2.0, 5.0, 10.0), shortfall=shares) == rows
 
 
 def test_nearest_hit_m_is_the_distance_to_the_nearest_endpoint() -> None:
