@@ -17,7 +17,7 @@ x, ``origin_xy_m`` the lower-left corner of cell (0, 0).
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +29,13 @@ from numpy.typing import NDArray
 from datasets.errors import DatasetError, shown_name
 from datasets.ros.bag import open_bag
 from datasets.ros.typestores import header_msg, pose_msg, time_msg, yaw_of_quaternion
-from datasets.ros.writer import BagWriter, _transform_stamped, bag_kind_of_path, open_bag_writer
+from datasets.ros.writer import (
+    BagWriter,
+    StreamedArray,
+    _transform_stamped,
+    bag_kind_of_path,
+    open_bag_writer,
+)
 from datasets.types import Trajectory
 
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
@@ -44,6 +50,7 @@ OCCUPIED_VALUE, FREE_VALUE, UNKNOWN_VALUE = 100, 0, -1
 LINE_LIST = 5  # visualization_msgs/Marker type
 MARKER_ADD = 0  # visualization_msgs/Marker action
 LOOP_CLOSURE_LINE_WIDTH_M = 0.1
+GRID_MAP_BAND_ROWS = 256  # rows of a layer flipped and written at a time (a 15 M-cell layer: ~22 bands)
 
 
 @dataclass(frozen=True)
@@ -131,8 +138,11 @@ def _trinary(
     return out
 
 
-def occupancy_grid_msg(w: BagWriter, values_0_100: NDArray[np.int8], raster: Raster, stamp_ns: int) -> object:
-    """An OccupancyGrid of int8 ``values_0_100`` (H, W) placed like ``raster``."""
+def occupancy_grid_msg(
+    w: BagWriter, values_0_100: NDArray[np.int8], raster: Raster, stamp_ns: int, data: NDArray | None = None
+) -> object:
+    """An OccupancyGrid of int8 ``values_0_100`` (H, W) placed like ``raster``; ``data`` replaces the values
+    (flattened) when given."""
     t = w.types
     height, width = values_0_100.shape
     info = t["nav_msgs/msg/MapMetaData"](
@@ -145,12 +155,15 @@ def occupancy_grid_msg(w: BagWriter, values_0_100: NDArray[np.int8], raster: Ras
     return t[OCCUPANCY_GRID](
         header=w.header(stamp_ns, raster.frame_id),
         info=info,
-        data=np.ascontiguousarray(values_0_100, dtype=np.int8).reshape(-1),
+        data=np.ascontiguousarray(values_0_100, dtype=np.int8).reshape(-1) if data is None else data,
     )
 
 
-def grid_map_msg(w: BagWriter, raster: Raster, stamp_ns: int) -> object:
-    """A GridMap with every layer of ``raster`` as float32."""
+def grid_map_msg(
+    w: BagWriter, raster: Raster, stamp_ns: int, data: Sequence[NDArray] | None = None
+) -> object:
+    """A GridMap with every layer of ``raster`` as float32; ``data`` (one 1-D float32 array per layer, in
+    GridMap order: :func:`grid_map_layer_data`) replaces the layers' values when given."""
     t = w.types
     height, width = raster.shape
     res = float(raster.resolution_m)
@@ -161,12 +174,9 @@ def grid_map_msg(w: BagWriter, raster: Raster, stamp_ns: int) -> object:
         t["std_msgs/msg/MultiArrayDimension"](label="row_index", size=width, stride=width),
     ]
     layout = t["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
-    arrays = [
-        t["std_msgs/msg/Float32MultiArray"](
-            layout=layout, data=np.ascontiguousarray(np.asarray(a, np.float32)[::-1, ::-1]).reshape(-1)
-        )
-        for a in raster.layers.values()
-    ]
+    if data is None:
+        data = [layer.whole() for layer in grid_map_layer_data(raster)]
+    arrays = [t["std_msgs/msg/Float32MultiArray"](layout=layout, data=d) for d in data]
     info = dict(
         resolution=res,
         length_x=width * res,
@@ -180,6 +190,22 @@ def grid_map_msg(w: BagWriter, raster: Raster, stamp_ns: int) -> object:
     if w.kind == "ros1":
         return t[GRID_MAP](info=t["grid_map_msgs/msg/GridMapInfo"](header=header, **info), **common)
     return t[GRID_MAP](header=header, info=t["grid_map_msgs/msg/GridMapInfo"](**info), **common)
+
+
+def grid_map_layer_data(raster: Raster, band_rows: int = GRID_MAP_BAND_ROWS) -> list[StreamedArray]:
+    """Each layer of ``raster`` as a GridMap stores it (float32, both axes reversed: grid_map's first cell is
+    the map's top-right corner), produced ``band_rows`` rows at a time."""
+    height, width = raster.shape
+
+    def bands(layer: NDArray) -> Iterator[NDArray[np.float32]]:
+        for top in range(height, 0, -band_rows):
+            band = np.asarray(layer[max(top - band_rows, 0) : top], dtype=np.float32)
+            yield np.ascontiguousarray(band[::-1, ::-1]).reshape(-1)
+
+    return [
+        StreamedArray(np.dtype(np.float32), height * width, lambda layer=layer: bands(layer))
+        for layer in raster.layers.values()
+    ]
 
 
 def path_msg(w: BagWriter, trajectory: Trajectory, stamp_ns: int) -> object:
@@ -295,15 +321,24 @@ def write_map_bag(
                 values = trinary_occupancy(raster.layers["probability"], raster.layers.get("unknown"))
             elif np.shape(values) != raster.shape:
                 raise DatasetError(f"{path}: map '{name}': occupancy of shape {np.shape(values)}")
-            occ = occupancy_grid_msg(w, np.asarray(values, np.int8), raster, stamp_ns)
-            var = occupancy_grid_msg(w, percent_int8(variance, full), raster, stamp_ns)
-            w.write(f"/{name}/occupancy", OCCUPANCY_GRID, stamp_ns, occ, latching=True)
-            w.write(f"/{name}/variance", OCCUPANCY_GRID, stamp_ns, var, latching=True)
-            w.write_built(
+            for topic, grid in (
+                (f"/{name}/occupancy", np.asarray(values, np.int8)),
+                (f"/{name}/variance", percent_int8(variance, full)),
+            ):
+                w.write_arrays_streamed(
+                    topic,
+                    OCCUPANCY_GRID,
+                    stamp_ns,
+                    lambda data, g=grid, r=raster: occupancy_grid_msg(w, g, r, stamp_ns, data[0]),
+                    [StreamedArray.of(grid)],
+                    latching=True,
+                )
+            w.write_arrays_streamed(
                 f"/{name}/grid_map",
                 GRID_MAP,
                 stamp_ns,
-                lambda r=raster: grid_map_msg(w, r, stamp_ns),
+                lambda data, r=raster: grid_map_msg(w, r, stamp_ns, data),
+                grid_map_layer_data(raster),
                 latching=True,
             )
             if name in metadata:

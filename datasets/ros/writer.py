@@ -36,8 +36,9 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -50,11 +51,14 @@ from rosbags.serde import SerdeError
 
 from datasets.errors import DatasetError, UnknownFormatError, first_line, shown, shown_name, shown_names
 from datasets.progress import stage
+from datasets.ros.mcap_stream import streaming_storage, write_streamed
 from datasets.ros.reader import SCAN_POSE_SUFFIX, namespace_of
 from datasets.ros.typestores import BagKind, header_msg, pose_msg, standard_typestore, time_msg
 from datasets.types import Recording, Trajectory
 
 ANGLE_SEARCH_ULPS = 64  # float32 neighbours of the angle_increment estimate tried on each side
+SENTINEL_BASE = 0x7FA5C3E1  # bit pattern (a float32 NaN) that marks where an array's elements go in a message
+MARK_BYTES = 8  # the least length of such a mark
 # ROS2 QoS of a latched topic (/tf_static): reliable, transient local, keep last 1; default durations.
 LATCHED_QOS = Qos(
     QosHistory.KEEP_LAST,
@@ -95,6 +99,32 @@ def check_output_path(path: Path) -> tuple[BagKind, str]:
     return kind
 
 
+@dataclass(frozen=True)
+class StreamedArray:
+    """A 1-D numeric array of a message given in consecutive pieces, so that a big message's arrays need not
+    exist whole (e.g. a map layer flipped band by band): ``size`` elements of ``dtype``; ``pieces()``
+    yields 1-D contiguous arrays of that dtype whose concatenation is the array."""
+
+    dtype: np.dtype
+    size: int
+    pieces: Callable[[], Iterator[NDArray]]
+
+    @classmethod
+    def of(cls, values: NDArray) -> StreamedArray:
+        """An array that exists already, flattened (C order) as one piece."""
+        flat = np.ascontiguousarray(values).reshape(-1)
+        return cls(flat.dtype, flat.size, lambda: iter([flat]))
+
+    def whole(self) -> NDArray:
+        """The array in one piece."""
+        out = np.empty(self.size, self.dtype)
+        at = 0
+        for piece in self.pieces():
+            out[at : at + piece.size] = piece
+            at += piece.size
+        return out
+
+
 class BagWriter:
     """Writes messages into an open bag; get one from :func:`open_bag_writer`.
 
@@ -133,6 +163,81 @@ class BagWriter:
         (a building's map layers) and the bag's copies of its bytes are not held at the same time."""
         self._write_bytes(topic, msgtype, stamp_ns, self._serialise(topic, msgtype, build()), latching)
 
+    def write_arrays_streamed(
+        self,
+        topic: str,
+        msgtype: str,
+        stamp_ns: int,
+        build: Callable[[Sequence[NDArray]], object],
+        arrays: Sequence[StreamedArray],
+        latching: bool = False,
+    ) -> None:
+        """:meth:`write` of ``build(data)``, the message whose big array fields are ``arrays`` (in the order
+        they are serialised), without holding it whole where the bag allows.
+
+        An MCAP bag gets the message piece by piece (:mod:`datasets.ros.mcap_stream`): ``build`` is called
+        with one- and two-element stand-ins to find the arrays' places in the serialised message, and the
+        pieces go between. Any other bag, or a message whose layout moves with the arrays' lengths (an
+        8-byte field after an array of 4-byte elements), gets ``build`` of the whole arrays."""
+        layout = None
+        if self.kind == "ros2" and streaming_storage(self._raw) is not None:
+            layout = self._array_layout(topic, msgtype, build, arrays)
+        if layout is None:
+            self.write_built(topic, msgtype, stamp_ns, lambda: build([a.whole() for a in arrays]), latching)
+            return
+
+        def pieces() -> Iterator[bytes | NDArray]:
+            for between, array in zip(layout, arrays, strict=False):
+                yield between
+                yield int(array.size).to_bytes(4, "little")
+                for piece in array.pieces():
+                    yield np.ascontiguousarray(piece, array.dtype).reshape(-1)
+            yield layout[-1]
+
+        size = sum(len(b) for b in layout) + sum(4 + a.size * np.dtype(a.dtype).itemsize for a in arrays)
+        conn = self._connection(topic, msgtype, latching)
+        write_streamed(self._raw, conn, int(stamp_ns), pieces(), size)
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def _array_layout(
+        self,
+        topic: str,
+        msgtype: str,
+        build: Callable[[Sequence[NDArray]], object],
+        arrays: Sequence[StreamedArray],
+    ) -> list[bytes] | None:
+        """The serialised message's bytes between the arrays (len(arrays) + 1 parts: before the first
+        array's length field, between one array's last element and the next one's length field, after the
+        last), or None when the stand-ins cannot be found or the layout depends on the arrays' lengths.
+
+        Each array's stand-in is a distinct pattern of at least 8 bytes (a NaN's bits for float32); the
+        message is serialised with each stand-in and again with one element more, which must shift what
+        follows by exactly one element (no alignment padding that depends on the length)."""
+        marks = []
+        for i, a in enumerate(arrays):
+            dtype = np.dtype(a.dtype)
+            pattern = ((SENTINEL_BASE + i) % 2**32).to_bytes(4, "little") * (2 + dtype.itemsize // 4)
+            count = max(1, MARK_BYTES // dtype.itemsize)
+            marks.append(np.frombuffer(pattern[: count * dtype.itemsize], dtype))
+        once = bytes(self._serialise(topic, msgtype, build([m.copy() for m in marks])))
+        longer = bytes(self._serialise(topic, msgtype, build([np.concatenate([m, m[:1]]) for m in marks])))
+        parts: list[bytes] = []
+        at = 0
+        expected = b""
+        for m in marks:
+            mark = m.tobytes()
+            found = once.find(mark, at)
+            length = m.size.to_bytes(4, "little")
+            if found < at + 4 or once.count(mark) != 1 or once[found - 4 : found] != length:
+                return None
+            parts.append(once[at : found - 4])
+            expected += parts[-1] + (m.size + 1).to_bytes(4, "little") + mark + m[:1].tobytes()
+            at = found + len(mark)
+        parts.append(once[at:])
+        if expected + parts[-1] != longer:
+            return None
+        return parts
+
     def _serialise(self, topic: str, msgtype: str, msg: object) -> bytes | memoryview:
         if msgtype not in self.types:
             raise DatasetError(
@@ -151,6 +256,11 @@ class BagWriter:
     def _write_bytes(
         self, topic: str, msgtype: str, stamp_ns: int, data: bytes | memoryview, latching: bool
     ) -> None:
+        self._raw.write(self._connection(topic, msgtype, latching), int(stamp_ns), data)
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def _connection(self, topic: str, msgtype: str, latching: bool) -> Any:
+        """The bag's connection of ``topic`` with ``msgtype``, added on first use."""
         key = (topic, msgtype)
         conn = self._conns.get(key)
         if conn is None:
@@ -164,8 +274,7 @@ class BagWriter:
                     topic, msgtype, typestore=self.typestore, offered_qos_profiles=qos
                 )
             self._conns[key] = conn
-        self._raw.write(conn, int(stamp_ns), data)
-        self.counts[topic] = self.counts.get(topic, 0) + 1
+        return conn
 
 
 @contextmanager
