@@ -11,6 +11,7 @@ inspected before it is saved. The documentation figures (``plot_roc``, ``plot_st
 
 from __future__ import annotations
 
+import gc
 import textwrap
 from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import Executor, Future, wait
@@ -225,6 +226,10 @@ def save_figure(fig: Figure, path: Path) -> Path:
     do not fill their panel at an integer number of pixels per cell is drawn by matplotlib as before."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    # A figure is a web of reference cycles, so the figures drawn before this one (their canvases and
+    # images: hundreds of megabytes for a big building) are freed only when the cycle collector runs, which
+    # big numpy buffers do not prompt; collected here, their memory serves this figure.
+    gc.collect()
     rgb = _paste_maps(fig)
     encoder = _PNG_ENCODER.get()
     if rgb is None:

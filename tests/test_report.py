@@ -3,10 +3,12 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import re
 import shutil
 import subprocess
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -285,6 +287,26 @@ def test_map_images_coloured_in_bands_equal_one_pass(kind, monkeypatch) -> None:
         whole = image.to_rgba(image.get_array(), alpha=image.get_alpha(), bytes=True)
         np.testing.assert_array_equal(figures._image_rgba(image), whole)
     plt.close(fig)
+
+
+def test_a_figure_saved_before_is_freed_when_the_next_is_saved(tmp_path) -> None:
+    """Figures are reference cycles: a dropped one (its canvas and images) would wait for the cycle
+    collector, which big numpy buffers do not prompt. save_figure collects them before it draws."""
+    kinds = _figure_kinds()
+    gc_was_enabled = gc.isenabled()
+    gc.disable()  # no collection but save_figure's own
+    try:
+        first = kinds["probability"]()
+        first.canvas.draw()
+        gone = weakref.ref(first)
+        figures.save_figure(first, tmp_path / "first.png")
+        del first
+        assert gone() is not None  # a cycle: dropping the last reference does not free it
+        figures.save_figure(kinds["variance"](), tmp_path / "second.png")
+        assert gone() is None
+    finally:
+        if gc_was_enabled:
+            gc.enable()
 
 
 def test_png_encoding_in_a_pool_writes_the_same_files(tmp_path) -> None:
