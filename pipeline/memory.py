@@ -8,6 +8,13 @@ are such) a fault costs many times a bare machine's. :func:`keep_freed_memory` a
 serve big blocks from its heap, never to trim it, and to give every thread that one heap: what one step frees,
 the next reuses without faults, in whichever thread. The process keeps its peak memory until it exits; the
 peak itself does not grow (``bench``'s ``peak_rss_mib``).
+
+On such machines the faults themselves are slow (seconds per gigabyte of system time), and a big building's
+map stages and exports take gigabytes of memory the process has not had yet. SLAM runs on one core before
+them. :func:`pretouch_heap` uses the other: while SLAM runs, a thread touches heap memory that the later
+stages will reuse, so that their faults are taken where a core is idle (the JVM's ``AlwaysPreTouch`` does the
+same for its heap). It is an estimate of what the stages will need and stops when SLAM ends; without the
+policy above it does nothing, as freed memory would go back to the kernel.
 """
 
 from __future__ import annotations
@@ -16,6 +23,11 @@ import ctypes
 import ctypes.util
 import os
 import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import numpy as np
 
 #: mallopt(3) parameters (glibc's malloc.h).
 M_TRIM_THRESHOLD = -1
@@ -23,6 +35,10 @@ M_MMAP_MAX = -4
 M_ARENA_MAX = -8
 #: The largest trim threshold mallopt takes (an int): the heap is trimmed only when 2 GiB at its top are free.
 NEVER_TRIM_BYTES = 2**31 - 1
+PRETOUCH_BLOCK_BYTES = 2**30  # each pre-touched block stays below NEVER_TRIM_BYTES
+PRETOUCH_CHUNK_BYTES = 32 * 2**20  # touched between checks of the stop signal
+PRETOUCH_MIN_BYTES = 256 * 2**20  # below this the faults are too few to be worth a thread
+PRETOUCH_MAX_SHARE = 0.25  # of the machine's available memory, at most
 #: Environment variables through which a user sets glibc's malloc; any of them set: their choice stands.
 USER_MALLOC_SETTINGS = (
     "MALLOC_MMAP_MAX_",
@@ -53,8 +69,91 @@ def keep_freed_memory() -> bool:
         return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt.restype = ctypes.c_int
-    return (
+    applied = (
         bool(mallopt(M_MMAP_MAX, 0))
         and bool(mallopt(M_TRIM_THRESHOLD, NEVER_TRIM_BYTES))
         and bool(mallopt(M_ARENA_MAX, 1))
     )
+    global _LIBC
+    _LIBC = libc if applied else None
+    return applied
+
+
+_LIBC: ctypes.CDLL | None = None  # glibc, once keep_freed_memory() has applied the policy
+_FENCES: list[int] = []  # tiny blocks that keep pre-touched ones apart from the heap's top (never freed)
+_FENCE_SIZES = (64, 4096, 65536)
+
+
+def _fence_after(libc: ctypes.CDLL, end: int) -> bool:
+    """Allocate a small block (never freed) right after the heap block that ends at address ``end``, if
+    glibc places one there (it does when the block was split from the heap's top and no free chunk fits the
+    small one); True when done. Misplaced tries are freed."""
+    libc.malloc.argtypes = (ctypes.c_size_t,)
+    libc.malloc.restype = ctypes.c_void_p
+    libc.free.argtypes = (ctypes.c_void_p,)
+    for size in _FENCE_SIZES:
+        fence = libc.malloc(size)
+        if fence and end <= fence <= end + 64:
+            _FENCES.append(fence)
+            return True
+        libc.free(fence)
+    return False
+
+
+def available_bytes() -> int | None:
+    """``MemAvailable`` of ``/proc/meminfo`` in bytes, None where there is none."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+@contextmanager
+def pretouch_heap(nbytes: int) -> Iterator[dict[str, int]]:
+    """Within the block, a thread touches up to ``nbytes`` of new heap memory (at most
+    :data:`PRETOUCH_MAX_SHARE` of the available memory) and frees it into the heap when the block ends, so
+    that the steps after the block reuse it without page faults. The thread stops at the block's end,
+    touched or not. Yields ``{"bytes": ...}``, the bytes touched once the block has ended (0 when nothing was
+    done: the policy of :func:`keep_freed_memory` not applied, or ``nbytes`` below
+    :data:`PRETOUCH_MIN_BYTES`).
+
+    Each block of at most :data:`PRETOUCH_BLOCK_BYTES` is followed by a small block that is never freed,
+    so that no freed block ends the heap, where glibc would give it back to the kernel. Touching is numpy
+    assignments, which release the GIL: the block's own work is not held up."""
+    report = {"bytes": 0}
+    available = available_bytes()
+    if available is not None:
+        nbytes = min(nbytes, int(PRETOUCH_MAX_SHARE * available))
+    libc = _LIBC
+    if libc is None or nbytes < PRETOUCH_MIN_BYTES:
+        yield report
+        return
+    stop = threading.Event()
+    page = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+    blocks: list[np.ndarray] = []
+
+    def touch() -> None:
+        left = nbytes
+        while left > 0 and not stop.is_set():
+            block = np.empty(min(left, PRETOUCH_BLOCK_BYTES), np.uint8)
+            blocks.append(block)
+            _fence_after(libc, block.ctypes.data + block.size)
+            for start in range(0, block.size, PRETOUCH_CHUNK_BYTES):
+                if stop.is_set():
+                    break
+                block[start : start + PRETOUCH_CHUNK_BYTES : page] = 0
+                report["bytes"] += min(PRETOUCH_CHUNK_BYTES, block.size - start)
+            left -= block.size
+
+    worker = threading.Thread(target=touch, name="pretouch", daemon=True)
+    worker.start()
+    try:
+        yield report
+    finally:
+        stop.set()
+        worker.join()
+        blocks.clear()

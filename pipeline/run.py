@@ -39,8 +39,9 @@ from pipeline.artifacts import (
 )
 from pipeline.config import Config, load_config, write_config
 from pipeline.errors import stage_boundary
-from pipeline.map_bounds import check_map_cells, scan_reach_m, snap_to_lattice, union_bounds
+from pipeline.map_bounds import check_map_cells, map_cells, scan_reach_m, snap_to_lattice, union_bounds
 from pipeline.map_exports import classify_layers, write_maps
+from pipeline.memory import pretouch_heap
 from pipeline.progress import Progress
 from pipeline.report import write_report
 from pipeline.run_folder import check_output_dir, params_path, staged_run_folder, write_summary
@@ -54,6 +55,10 @@ if TYPE_CHECKING:
     from datasets.simulation.raster import GroundTruth
 
 MAP_MARGIN_M = 1.0
+# Memory the map stages and the export take beyond SLAM's, per map cell: fr-clinic's run grows from about
+# 0.5 GB when SLAM starts to a 3.5 GB peak with maps of 15 M cells (docs/evaluation.md); a little under.
+PRETOUCH_BYTES_PER_CELL = 160
+PRETOUCH_SCAN_STEP = 10  # every 10th scan spans the map's bounds well enough for an estimate
 
 
 def read_input(input_path: Path, config: Config) -> Recording:
@@ -199,7 +204,11 @@ def run_pipeline(
         config.scale.max_map_cells,
         f"{input_path}: the map of a single scan",
     )
-    with timer("slam"), stage_boundary("SLAM", input_path):
+    with (
+        timer("slam"),
+        stage_boundary("SLAM", input_path),
+        pretouch_heap(pretouch_estimate_bytes(rec, config)) as pretouched,  # on the core SLAM leaves idle
+    ):
         slam = run_slam_recording(rec, config.slam, progress)
 
     with (
@@ -263,11 +272,34 @@ def run_pipeline(
             input_path, rec, slam, config, layers["after"], bounds, params, metrics, timer, shares
         )
         summary["tiles"] = tiles_summary(maps, config)
+        summary["pretouched_mib"] = round(pretouched["bytes"] / 2**20, 1)
         summary["map"]["render"] = render_stats
         if config.export.png:
             write_report(stage, summary, maps=layers)
         write_summary(stage, summary)
     return summary
+
+
+def pretouch_estimate_bytes(rec: Recording, config: Config) -> int:
+    """What the map stages and the export of ``rec`` will take beyond SLAM's memory (bytes), for
+    :func:`pipeline.memory.pretouch_heap`: :data:`PRETOUCH_BYTES_PER_CELL` per cell of the map that every
+    :data:`PRETOUCH_SCAN_STEP`-th scan's beams span at the recording's own poses (its logged scan poses,
+    else its wheel odometry); 0 without either."""
+    from pipeline.evaluate_slam import wheel_poses_of
+
+    if rec.scans is None or len(rec.scans) == 0:
+        return 0
+    poses = rec.scan_poses.poses_xytheta if rec.scan_poses is not None else wheel_poses_of(rec)
+    if poses is None or len(poses) != len(rec.scans) or not np.all(np.isfinite(poses)):
+        return 0
+    builder = MapBuilder.from_config(config.mapping)
+    indices = np.arange(0, len(rec.scans), PRETOUCH_SCAN_STEP)
+    beams = builder.beams(rec.scans, poses, rec.laser_in_base_xytheta, indices)
+    if len(beams) == 0:
+        return 0
+    bounds = snap_to_lattice(beams.bounds_xy_m(MAP_MARGIN_M), config.mapping.resolution_m)
+    nx, ny = map_cells(bounds, config.mapping.resolution_m)
+    return int(min(nx * ny, config.scale.max_map_cells)) * PRETOUCH_BYTES_PER_CELL
 
 
 def evaluate_run(

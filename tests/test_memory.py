@@ -80,3 +80,84 @@ def test_a_users_malloc_settings_stand() -> None:
         applied, held, after = _child("policy", env)
         assert not applied
         assert after < held - 150 * 1024
+
+
+_PRETOUCH_CHILD = """
+import sys, time
+import numpy as np
+from pipeline.memory import keep_freed_memory, pretouch_heap
+
+applied = keep_freed_memory() if sys.argv[1] == "policy" else False
+
+def rss_kib():
+    return int(next(line for line in open("/proc/self/status") if line.startswith("VmRSS")).split()[1])
+
+target = int(sys.argv[3]) * 2**20
+start = rss_kib()
+t0 = time.perf_counter()
+with pretouch_heap(target if sys.argv[2] != "none" else 0) as done:
+    if sys.argv[2] == "wait":
+        while applied and done["bytes"] < target and time.perf_counter() - t0 < 60:
+            time.sleep(0.01)
+left_s = time.perf_counter() - t0
+touched = rss_kib()
+arrays = [np.ones(100 * 2**20, np.uint8) for _ in range(4)]  # 400 MiB, as the map stages' layers would be
+print(applied, done["bytes"] // 2**20, start, touched, rss_kib(), left_s)
+"""
+
+
+def _pretouch_child(policy: str, mode: str, mib: int) -> tuple[bool, int, int, int, int, float]:
+    """(policy applied, MiB pre-touched, RSS at start, after the block, after 400 MiB of new arrays (KiB),
+    seconds in the block) of a fresh interpreter pre-touching ``mib`` MiB: ``mode`` "wait" stays in the
+    block until done, "leave" leaves at once, "none" asks for nothing."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "GLIBC_TUNABLES"}
+    env["PYTHONPATH"] = str(ROOT)
+    out = subprocess.run(
+        [sys.executable, "-c", _PRETOUCH_CHILD, policy, mode, str(mib)],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=env,
+    ).stdout.split()
+    return out[0] == "True", int(out[1]), int(out[2]), int(out[3]), int(out[4]), float(out[5])
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the RSS from /proc (Linux)")
+def test_pretouched_memory_is_reused_by_the_arrays_that_follow() -> None:
+    applied, touched_mib, start, touched, after, _ = _pretouch_child("policy", "wait", 512)
+    assert applied and touched_mib == 512
+    assert touched - start > 450 * 1024  # in the process once the block has ended
+    assert after - touched < 150 * 1024  # the 400 MiB of arrays took (nearly) no new memory
+    applied, touched_mib, start, touched, after, _ = _pretouch_child("policy", "none", 512)
+    assert applied and touched_mib == 0
+    assert after - touched > 350 * 1024  # without it they do
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads the RSS from /proc (Linux)")
+def test_pretouch_does_nothing_without_the_policy_and_stops_with_its_block() -> None:
+    applied, touched_mib, start, touched, _, _ = _pretouch_child("default", "wait", 512)
+    assert not applied and touched_mib == 0  # freed memory would go back to the kernel: no point
+    assert touched - start < 50 * 1024
+    applied, touched_mib, _, _, _, left_s = _pretouch_child("policy", "leave", 8192)
+    assert applied and touched_mib < 8192 and left_s < 5.0  # left at once: the thread stopped too
+
+
+def test_pretouch_estimate_follows_the_map_the_recording_spans() -> None:
+    """fr-clinic's own odometry spans a map of millions of cells, intel's a few hundred thousand; a bag
+    without odometry gives no estimate."""
+    from datasets.registry import open_dataset
+    from pipeline.config import load_config
+    from pipeline.run import PRETOUCH_BYTES_PER_CELL, pretouch_estimate_bytes
+    from tests.conftest import data_file
+
+    config = load_config()
+
+    def estimate(relative: str) -> int:
+        return pretouch_estimate_bytes(open_dataset(data_file(relative)), config)
+
+    clinic = estimate("fr-clinic/fr-clinic_robotlaser.clf.bz2")
+    intel = estimate("intel/intel.clf.bz2")
+    demo = estimate("lsm-demo/demo_index_fixed.bag")
+    assert 10e6 < clinic / PRETOUCH_BYTES_PER_CELL < 20e6  # its maps: 15.05 M cells
+    assert 0.1e6 < intel / PRETOUCH_BYTES_PER_CELL < 2e6  # its maps: 0.17 M cells (odometry drifts)
+    assert demo == 0
