@@ -26,6 +26,7 @@ import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 
@@ -100,16 +101,25 @@ def _fence_after(libc: ctypes.CDLL, end: int) -> bool:
     return False
 
 
-def available_bytes() -> int | None:
-    """``MemAvailable`` of ``/proc/meminfo`` in bytes, None where there is none."""
+def available_bytes(meminfo: str = "/proc/meminfo", cgroup: str = "/sys/fs/cgroup") -> int | None:
+    """What the process may still take (bytes): the machine's ``MemAvailable`` and, under a cgroup v2
+    memory limit (a container's), what the limit leaves; None where neither is known."""
+    known: list[int] = []
     try:
-        with open("/proc/meminfo") as f:
+        with open(meminfo) as f:
             for line in f:
                 if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                    known.append(int(line.split()[1]) * 1024)
+                    break
     except (OSError, ValueError, IndexError):
-        return None
-    return None
+        pass
+    try:
+        limit = Path(cgroup, "memory.max").read_text().strip()
+        if limit != "max":
+            known.append(int(limit) - int(Path(cgroup, "memory.current").read_text().strip()))
+    except (OSError, ValueError):
+        pass
+    return max(min(known), 0) if known else None
 
 
 @contextmanager

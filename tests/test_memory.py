@@ -161,3 +161,21 @@ def test_pretouch_estimate_follows_the_map_the_recording_spans() -> None:
     assert 10e6 < clinic / PRETOUCH_BYTES_PER_CELL < 20e6  # its maps: 15.05 M cells
     assert 0.1e6 < intel / PRETOUCH_BYTES_PER_CELL < 2e6  # its maps: 0.17 M cells (odometry drifts)
     assert demo == 0
+
+
+def test_available_memory_is_the_lower_of_the_machine_and_a_container_limit(tmp_path: Path) -> None:
+    from pipeline.memory import available_bytes
+
+    meminfo = tmp_path / "meminfo"
+    meminfo.write_text("MemTotal:       24000000 kB\nMemAvailable:   20000000 kB\n")
+    cgroup = tmp_path / "cgroup"
+    cgroup.mkdir()
+    assert available_bytes(str(meminfo), str(cgroup)) == 20000000 * 1024  # no cgroup files
+    (cgroup / "memory.max").write_text("max\n")
+    (cgroup / "memory.current").write_text("1000\n")
+    assert available_bytes(str(meminfo), str(cgroup)) == 20000000 * 1024  # no limit
+    (cgroup / "memory.max").write_text(f"{4 * 2**30}\n")
+    (cgroup / "memory.current").write_text(f"{2**30}\n")
+    assert available_bytes(str(meminfo), str(cgroup)) == 3 * 2**30  # the container's limit leaves less
+    assert available_bytes(str(tmp_path / "none"), str(cgroup)) == 3 * 2**30
+    assert available_bytes(str(tmp_path / "none"), str(tmp_path / "none")) is None
