@@ -81,6 +81,13 @@ def keep_freed_memory() -> bool:
 
 
 _LIBC: ctypes.CDLL | None = None  # glibc, once keep_freed_memory() has applied the policy
+
+
+def keeping_freed_memory() -> bool:
+    """Whether :func:`keep_freed_memory` has applied the policy in this process (the command line does)."""
+    return _LIBC is not None
+
+
 _FENCES: list[int] = []  # tiny blocks that keep pre-touched ones apart from the heap's top (never freed)
 _FENCE_SIZES = (64, 4096, 65536)
 

@@ -41,7 +41,7 @@ from pipeline.config import Config, load_config, write_config
 from pipeline.errors import stage_boundary
 from pipeline.map_bounds import check_map_cells, map_cells, scan_reach_m, snap_to_lattice, union_bounds
 from pipeline.map_exports import classify_layers, write_maps
-from pipeline.memory import pretouch_heap
+from pipeline.memory import keeping_freed_memory, pretouch_heap
 from pipeline.progress import Progress
 from pipeline.report import write_report
 from pipeline.run_folder import check_output_dir, params_path, staged_run_folder, write_summary
@@ -55,8 +55,8 @@ if TYPE_CHECKING:
     from datasets.simulation.raster import GroundTruth
 
 MAP_MARGIN_M = 1.0
-# Memory the map stages and the export take beyond SLAM's, per map cell: fr-clinic's run grows from about
-# 0.5 GB when SLAM starts to a 3.5 GB peak with maps of 15 M cells (docs/evaluation.md); a little under.
+# Memory the map stages and the export take beyond what the process holds when SLAM starts, per map cell,
+# a little under fr-clinic's (docs/evaluation.md, "Memory is time on some machines")
 PRETOUCH_BYTES_PER_CELL = 160
 PRETOUCH_SCAN_STEP = 10  # every 10th scan spans the map's bounds well enough for an estimate
 
@@ -207,7 +207,7 @@ def run_pipeline(
     with (
         timer("slam"),
         stage_boundary("SLAM", input_path),
-        pretouch_heap(pretouch_estimate_bytes(rec, config)) as pretouched,  # on the core SLAM leaves idle
+        pretouch_heap(pretouch_estimate_bytes(rec, config) if keeping_freed_memory() else 0) as pretouched,
     ):
         slam = run_slam_recording(rec, config.slam, progress)
 

@@ -176,9 +176,10 @@ class BagWriter:
         they are serialised), without holding it whole where the bag allows.
 
         An MCAP bag gets the message piece by piece (:mod:`datasets.ros.mcap_stream`): ``build`` is called
-        with one- and two-element stand-ins to find the arrays' places in the serialised message, and the
-        pieces go between. Any other bag, or a message whose layout moves with the arrays' lengths (an
-        8-byte field after an array of 4-byte elements), gets ``build`` of the whole arrays."""
+        with short stand-ins for the arrays to find their places in the serialised message
+        (:meth:`_array_layout`), and the pieces go between. Any other bag, or a message whose layout moves
+        with the arrays' lengths (an 8-byte field after an array of 4-byte elements), gets ``build`` of the
+        whole arrays."""
         layout = None
         if self.kind == "ros2" and streaming_storage(self._raw) is not None:
             layout = self._array_layout(topic, msgtype, build, arrays)
