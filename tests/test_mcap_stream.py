@@ -134,17 +134,22 @@ def test_arrays_in_uneven_pieces_serialise_as_the_whole_message(tmp_path: Path, 
     assert [raw["/joy0"], raw["/joy1"]] == wants
 
 
-def test_pieces_that_do_not_add_up_leave_no_bag(tmp_path: Path) -> None:
-    short = StreamedArray(np.dtype(np.float32), 5, lambda: iter([np.zeros(4, np.float32)]))
-    with pytest.raises(ValueError, match=r"pieces hold \d+ bytes, not the \d+ announced") as err:
+@pytest.mark.parametrize(
+    "pieces", [[np.zeros(4, np.float32)], [np.zeros(5, np.float32), np.ones(1, np.float32)]]
+)
+def test_pieces_that_do_not_add_up_leave_no_bag(tmp_path: Path, pieces: list[np.ndarray]) -> None:
+    """Fewer or more elements than announced (5): an error, before the compressor is flushed or fed more
+    than it was promised, and no bag."""
+    wrong = StreamedArray(np.dtype(np.float32), 5, lambda: iter(pieces))
+    with pytest.raises(ValueError, match=r"pieces hold (at least )?\d+ bytes, not the \d+ announced") as err:
         with open_bag_writer(tmp_path / "bad.mcap") as w:
             msgtype = "std_msgs/msg/Float32MultiArray"
             layout = w.types["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0)
             w.write_arrays_streamed(
-                "/a", msgtype, T0, lambda d: w.types[msgtype](layout=layout, data=d[0]), [short]
+                "/a", msgtype, T0, lambda d: w.types[msgtype](layout=layout, data=d[0]), [wrong]
             )
     held, announced = (int(n) for n in re.findall(r"\d+", str(err.value)))
-    assert announced - held == 4  # one float32 short
+    assert held - announced == (4 if len(pieces) == 2 else -4)  # one float32 too many or too few
     assert list(tmp_path.iterdir()) == []
 
 

@@ -122,11 +122,14 @@ def write_streamed(
     for p in pieces:
         piece = memoryview(p).cast("B")
         written += len(piece)
+        if written > size:  # checked before zstd sees more than it was promised
+            break
         put(piece)
+    if written != size:
+        held = f"at least {written}" if written > size else str(written)
+        raise ValueError(f"the message's pieces hold {held} bytes, not the {size} announced")
     if compressor is not None:
         bio.write(compressor.flush())
-    if written != size:
-        raise ValueError(f"the message's pieces hold {written} bytes, not the {size} announced")
     chunk_end = bio.tell()
     bio.seek(length_at)
     write_uint64(bio, chunk_end - length_at - 8)
