@@ -77,6 +77,10 @@ def keep_freed_memory() -> bool:
     )
     global _LIBC
     _LIBC = libc if applied else None
+    if applied:  # for the pre-touch's fences (_fence_after)
+        libc.malloc.argtypes = (ctypes.c_size_t,)
+        libc.malloc.restype = ctypes.c_void_p
+        libc.free.argtypes = (ctypes.c_void_p,)
     return applied
 
 
@@ -96,9 +100,6 @@ def _fence_after(libc: ctypes.CDLL, end: int) -> bool:
     """Allocate a small block (never freed) right after the heap block that ends at address ``end``, if
     glibc places one there (it does when the block was split from the heap's top and no free chunk fits the
     small one); True when done. Misplaced tries are freed."""
-    libc.malloc.argtypes = (ctypes.c_size_t,)
-    libc.malloc.restype = ctypes.c_void_p
-    libc.free.argtypes = (ctypes.c_void_p,)
     for size in _FENCE_SIZES:
         fence = libc.malloc(size)
         if fence and end <= fence <= end + 64:
@@ -142,10 +143,10 @@ def pretouch_heap(nbytes: int) -> Iterator[dict[str, int]]:
     so that no freed block ends the heap, where glibc would give it back to the kernel. Touching is numpy
     assignments, which release the GIL: the block's own work is not held up."""
     report = {"bytes": 0}
-    available = available_bytes()
+    libc = _LIBC
+    available = available_bytes() if libc is not None else None
     if available is not None:
         nbytes = min(nbytes, int(PRETOUCH_MAX_SHARE * available))
-    libc = _LIBC
     if libc is None or nbytes < PRETOUCH_MIN_BYTES:
         yield report
         return
