@@ -41,7 +41,7 @@ from pipeline.progress import Progress
 from slam import geometry as se2
 from slam import metrics
 from slam.result import SlamResult
-from slam.system import run_slam_recording
+from slam.system import run_slam_recording, wheel_poses_of
 
 STAMP_TOLERANCE_NS = 50_000_000  # 50 ms: a relation stamp farther from every scan stamp is not matched
 
@@ -269,19 +269,6 @@ def match_relations(rec: Recording, relations: Any, relations_path: str | Path) 
             f"scan of {rec.source}"
         )
     return best
-
-
-def wheel_poses_of(rec: Recording) -> np.ndarray | None:
-    """(N, 3) the wheel odometry SLAM uses (:func:`slam.system.wheel_odometry`) at the scan stamps, or None
-    when the recording has none."""
-    from slam.system import wheel_odometry, wheel_poses_at_scans
-
-    if rec.scans is None or len(rec.scans) == 0:
-        return None
-    wheel, _ = wheel_odometry(rec)
-    if wheel is None or len(wheel) == 0:
-        return None
-    return wheel_poses_at_scans(wheel, np.asarray(rec.scans.stamps_ns, dtype=np.int64))
 
 
 def score_relations(

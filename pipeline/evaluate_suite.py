@@ -77,12 +77,12 @@ from pipeline.evaluate_slam import (
     match_relations,
     score_relations,
     slam_and_score,
-    wheel_poses_of,
 )
 from pipeline.progress import Progress, StageBar
 from pipeline.provenance import provenance
 from slam import geometry as se2
 from slam.metrics import align_se2
+from slam.system import wheel_poses_of
 
 FloatArray = NDArray[np.float64]
 

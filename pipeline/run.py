@@ -48,7 +48,7 @@ from pipeline.run_folder import check_output_dir, params_path, staged_run_folder
 from pipeline.scale import engine_name, tile_engine
 from slam.metrics import ate_rmse
 from slam.result import SlamResult
-from slam.system import run_slam_recording
+from slam.system import run_slam_recording, wheel_poses_of
 from slam.trajectory_io import read_tum
 
 if TYPE_CHECKING:
@@ -285,8 +285,6 @@ def pretouch_estimate_bytes(rec: Recording, config: Config) -> int:
     :func:`pipeline.memory.pretouch_heap`: :data:`PRETOUCH_BYTES_PER_CELL` per cell of the map that every
     :data:`PRETOUCH_SCAN_STEP`-th scan's beams span at the recording's own poses (its logged scan poses,
     else its wheel odometry); 0 without either."""
-    from pipeline.evaluate_slam import wheel_poses_of
-
     if rec.scans is None or len(rec.scans) == 0:
         return 0
     poses = rec.scan_poses.poses_xytheta if rec.scan_poses is not None else wheel_poses_of(rec)

@@ -95,6 +95,17 @@ def wheel_odometry(recording: Recording) -> tuple[Trajectory | None, str]:
     return None, "none (scans only)"
 
 
+def wheel_poses_of(recording: Recording) -> FloatArray | None:
+    """(N, 3) the wheel odometry SLAM uses (:func:`wheel_odometry`) at the recording's scan stamps, or None
+    when it has none."""
+    if recording.scans is None or len(recording.scans) == 0:
+        return None
+    wheel, _ = wheel_odometry(recording)
+    if wheel is None or len(wheel) == 0:
+        return None
+    return wheel_poses_at_scans(wheel, np.asarray(recording.scans.stamps_ns, dtype=np.int64))
+
+
 def run_slam(
     scans: ScanSequence,
     odometry: Trajectory | None,
