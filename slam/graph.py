@@ -9,6 +9,7 @@ Marginals leave this module in GTSAM's body frame; :mod:`slam.geometry` rotates 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import gtsam
@@ -98,12 +99,19 @@ class PoseGraph:
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self.edges: list[Edge] = []
+        self._edge_table = EdgeTable()
         self._loop_factor_index: dict[int, int] = {}
         self._n = 0
         self._estimate: gtsam.Values | None = None
 
     def __len__(self) -> int:
         return self._n
+
+    @property
+    def edge_table(self) -> EdgeTable:
+        """:attr:`edges` as an :class:`EdgeTable` (brought up to date here, the new edges only)."""
+        self._edge_table.extend(self.edges[len(self._edge_table) :])
+        return self._edge_table
 
     def add_pose(self, initial_xytheta: FloatArray) -> int:
         """A new keyframe variable with its initial guess; returns its key."""
@@ -332,20 +340,70 @@ def _values_to_array(values: gtsam.Values, n: int) -> FloatArray:
     return out
 
 
-def edge_errors2(poses_xytheta: FloatArray, edges: list[Edge]) -> FloatArray:
-    """(E,) squared whitened errors ``r^T cov^-1 r`` of every edge at ``poses_xytheta`` (K, 3), without the
-    robust loss; ``r`` is GTSAM's error (``Logmap(z^-1 * between(x_from, x_to))``, or of the prior)."""
-    if not edges:
-        return np.zeros(0)
-    p = np.asarray(poses_xytheta, dtype=np.float64)
-    i = np.array([e.key_from for e in edges])
-    j = np.array([e.key_to for e in edges])
-    z = np.stack([e.measurement_xytheta for e in edges])
-    info = np.linalg.inv(np.stack([e.cov for e in edges]))
-    prior = np.array([e.kind == "prior" for e in edges])
-    h = np.where(prior[:, None], p[i], se2.between(p[i], p[j]))
-    r = se2.logmap(se2.between(z, h))
-    return np.einsum("ni,nij,nj->n", r, info, r)
+class EdgeTable:
+    """Edges as arrays, appended to as a graph grows (E edges): keys ``key_from`` / ``key_to`` (E,),
+    measurements (E, 3), informations (E, 3, 3) and which are priors and loop closures.
+
+    Every edge's error is then one vectorised evaluation (:meth:`errors2`); the loop-closure search
+    re-estimates the variance factor after each closure it accepts, over all edges so far, and walking
+    the edge objects and inverting every covariance again each time cost more than the evaluation."""
+
+    def __init__(self, edges: Sequence[Edge] = ()) -> None:
+        self._n = 0
+        self._key_from = np.zeros(0, dtype=np.int64)
+        self._key_to = np.zeros(0, dtype=np.int64)
+        self._z = np.zeros((0, 3))
+        self._info = np.zeros((0, 3, 3))
+        self._prior = np.zeros(0, dtype=bool)
+        self._loop = np.zeros(0, dtype=bool)
+        self.extend(edges)
+
+    def __len__(self) -> int:
+        return self._n
+
+    def extend(self, edges: Sequence[Edge]) -> None:
+        """Append ``edges`` (their covariances inverted once, here)."""
+        edges = list(edges)
+        if not edges:
+            return
+        n, m = self._n, len(edges)
+        if n + m > self._key_from.shape[0]:
+            cap = max(n + m, 2 * self._key_from.shape[0], 64)
+            for name in ("_key_from", "_key_to", "_z", "_info", "_prior", "_loop"):
+                old = getattr(self, name)
+                grown = np.zeros((cap, *old.shape[1:]), dtype=old.dtype)
+                grown[:n] = old[:n]
+                setattr(self, name, grown)
+        self._key_from[n : n + m] = [e.key_from for e in edges]
+        self._key_to[n : n + m] = [e.key_to for e in edges]
+        self._z[n : n + m] = np.stack([e.measurement_xytheta for e in edges])
+        self._info[n : n + m] = np.linalg.inv(np.stack([e.cov for e in edges]))
+        self._prior[n : n + m] = [e.kind == "prior" for e in edges]
+        self._loop[n : n + m] = [e.kind == "loop" for e in edges]
+        self._n = n + m
+
+    @property
+    def is_loop(self) -> NDArray[np.bool_]:
+        """(E,) which edges are loop closures."""
+        return self._loop[: self._n]
+
+    def errors2(self, poses_xytheta: FloatArray) -> FloatArray:
+        """(E,) squared whitened errors ``r^T cov^-1 r`` of every edge at ``poses_xytheta`` (K, 3), without
+        the robust loss; ``r`` is GTSAM's error (``Logmap(z^-1 * between(x_from, x_to))``, or of the
+        prior)."""
+        n = self._n
+        if n == 0:
+            return np.zeros(0)
+        p = np.asarray(poses_xytheta, dtype=np.float64)
+        i, j = self._key_from[:n], self._key_to[:n]
+        h = np.where(self._prior[:n, None], p[i], se2.between(p[i], p[j]))
+        r = se2.logmap(se2.between(self._z[:n], h))
+        return np.einsum("ni,nij,nj->n", r, self._info[:n], r)
+
+
+def edge_errors2(poses_xytheta: FloatArray, edges: Sequence[Edge]) -> FloatArray:
+    """(E,) squared whitened errors of ``edges`` at ``poses_xytheta`` (K, 3) (:meth:`EdgeTable.errors2`)."""
+    return EdgeTable(edges).errors2(poses_xytheta)
 
 
 def chain_graph_marginals(

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -29,7 +30,7 @@ from slam import geometry as se2
 from slam.config import GraphConfig, SlamConfig
 from slam.consistency import keyframe_consistency_body
 from slam.faults import INJECTED, FalseClosures, false_closures
-from slam.graph import Edge, PoseGraph, edge_errors2, gnc_loop_inliers
+from slam.graph import Edge, EdgeTable, PoseGraph, gnc_loop_inliers
 from slam.keyframes import keyframe_offsets, relative_cov_body, select_keyframes
 from slam.loop_closure import LoopCloser, LoopClosure
 from slam.odometry import OdometryResult, run_odometry, scans_points_base
@@ -356,7 +357,7 @@ class ClosureSearch:
             self.est[: k + 1] = self.graph.estimate()
             self.cov_w[k] = se2.rotate_cov_to_world(self.est[k], self.graph.marginal_body(k))
             if gc.estimate_variance_factor:
-                self.scale = variance_factor(self.est[: k + 1], self.graph.edges, self.scale, gc)[0]
+                self.scale = variance_factor(self.est[: k + 1], self.graph.edge_table, self.scale, gc)[0]
 
     def dense_pass(self) -> None:
         """Every keyframe against the targets the (now consistent) graph puts near it, verified in place."""
@@ -480,7 +481,7 @@ def per_scan_covariances(
 
 
 def variance_factor(
-    poses_xytheta: FloatArray, edges: list[Edge], current: float, cfg: GraphConfig
+    poses_xytheta: FloatArray, edges: Sequence[Edge] | EdgeTable, current: float, cfg: GraphConfig
 ) -> tuple[float, NDArray[np.bool_]]:
     """A-posteriori variance factor of the graph adjustment, and the loop closures counted as inliers.
 
@@ -490,15 +491,16 @@ def variance_factor(
     covariance is right up to one common factor, ``s`` estimates that factor (classical least-squares
     adjustment). Returns ``(current, all-True)`` when fewer than ``variance_factor_min_loops`` loops agree.
     """
-    e2 = edge_errors2(poses_xytheta, edges)
-    loops = np.array([e.kind == "loop" for e in edges])
+    table = edges if isinstance(edges, EdgeTable) else EdgeTable(edges)
+    e2 = table.errors2(poses_xytheta)
+    loops = table.is_loop
     s = max(current, 1e-12)
-    inl = np.ones(len(edges), dtype=bool)
+    inl = np.ones(len(table), dtype=bool)
     for _ in range(10):
         inl = ~loops | (e2 <= cfg.variance_factor_gate_chi2 * s)
         n_loops = int(np.sum(inl & loops))
         if n_loops < cfg.variance_factor_min_loops:
-            return current, np.ones(len(edges), dtype=bool)
+            return current, np.ones(len(table), dtype=bool)
         s_new = float(np.sum(e2[inl])) / (3.0 * n_loops)
         if abs(s_new - s) <= 1e-3 * s:
             s = s_new

@@ -7,7 +7,7 @@ import numpy as np
 
 from slam import geometry as se2
 from slam.config import GraphConfig
-from slam.graph import PoseGraph, edge_errors2
+from slam.graph import EdgeTable, PoseGraph, edge_errors2
 from slam.system import variance_factor
 
 ODO_COV = np.diag([0.2**2, 0.2**2, 0.1**2])  # the noise of GTSAM's Pose2SLAMExample
@@ -83,6 +83,30 @@ def test_edge_errors_match_gtsam_factor_errors() -> None:
     ours = edge_errors2(est, g.edges)
     theirs = [2.0 * g.graph.at(i).error(values) for i in range(g.graph.size())]
     np.testing.assert_allclose(ours, theirs, rtol=1e-9)
+
+
+def test_edge_table_grown_edge_by_edge_equals_one_built_at_once() -> None:
+    """The graph's table is appended to as edges arrive (the loop search reads it after every closure): it
+    must give every edge the error the edges give on their own, to the last bit, and follow new edges."""
+    g = _square_graph(False, _perturbed())
+    est = _perturbed()
+    first = g.edge_table.errors2(est)  # 5 edges: prior and odometry
+    assert first.shape == (5,)
+    g.add_between("loop", 4, 1, np.array([2.0, 0.0, np.pi / 2]), ODO_COV * 3.0)
+    g.add_between("loop", 3, 0, np.array([2.1, 0.1, np.pi / 2]), ODO_COV, "cauchy", 2.0)
+    grown = g.edge_table.errors2(est)
+    whole = EdgeTable(g.edges).errors2(est)
+    one_by_one = np.concatenate([EdgeTable([e]).errors2(est) for e in g.edges])
+    np.testing.assert_array_equal(grown, whole)
+    np.testing.assert_array_equal(grown, one_by_one)
+    np.testing.assert_array_equal(grown[:5], first)
+    np.testing.assert_array_equal(g.edge_table.is_loop, [False] * 5 + [True, True])
+    # and the variance factor reads the table as it reads the edge list
+    cfg = GraphConfig(variance_factor_min_loops=1)
+    s_table, inl_table = variance_factor(est, g.edge_table, 1.0, cfg)
+    s_list, inl_list = variance_factor(est, list(g.edges), 1.0, cfg)
+    assert s_table == s_list and s_table > 1.0
+    np.testing.assert_array_equal(inl_table, inl_list)
 
 
 def _corridor_loop(n: int, false_closure: str | None) -> tuple[np.ndarray, np.ndarray]:
