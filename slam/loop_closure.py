@@ -48,6 +48,7 @@ from slam.scan_matching import (
     overlap,
     refine_point_to_line,
     scan_normals,
+    voxel_thin,
 )
 
 FloatArray = NDArray[np.float64]
@@ -78,17 +79,6 @@ class LoopClosure:
     window_xy_m: float = 0.0
     window_theta_rad: float = 0.0
     consistent: bool = True  # counted as an inlier by the final variance-factor estimate
-
-
-def voxel_thin(points_xy: FloatArray, voxel_m: float) -> NDArray[np.int64]:
-    """Indices of the first point in each occupied voxel (in input order)."""
-    if points_xy.shape[0] == 0:
-        return np.zeros(0, dtype=np.int64)
-    cells = np.floor(points_xy / voxel_m).astype(np.int64)
-    cells -= cells.min(axis=0)
-    keys = cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]
-    _, first = np.unique(keys, return_index=True)
-    return np.sort(first)
 
 
 def _sigmas(cov: FloatArray) -> tuple[float, float]:

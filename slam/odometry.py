@@ -47,6 +47,7 @@ from slam.scan_matching import (
     correlative_search,
     refine_point_to_line,
     scan_normals,
+    voxel_thin,
 )
 
 FloatArray = NDArray[np.float64]
@@ -340,9 +341,7 @@ def search_window(
     if thin:
         # one point per 2x2 cells, as a dense scanner's neighbouring beams score the same cells (681 beams
         # within 5.6 m)
-        cells = np.floor(points_xy / (2.0 * target.resolution_m)).astype(np.int64)
-        _, first = np.unique(cells[:, 0] * 1_000_003 + cells[:, 1], return_index=True)
-        points_xy = points_xy[np.sort(first)]
+        points_xy = points_xy[voxel_thin(points_xy, 2.0 * target.resolution_m)]
     return branch_and_bound_search(
         target,
         points_xy,

@@ -149,6 +149,43 @@ def scan_normals(
     )
 
 
+@nb.njit(cache=True)
+def _first_of_each(keys: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Indices (in increasing order) of the first occurrence of each distinct value of ``keys`` (n,):
+    one pass with an open-addressing hash table (Fibonacci hashing, linear probing), no sort."""
+    n = keys.shape[0]
+    bits = 4
+    while (1 << bits) < 2 * n:
+        bits += 1
+    mask = (1 << bits) - 1
+    slots = np.full(1 << bits, -1, dtype=np.int64)  # the index of the first key that took the slot
+    out = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        k = keys[i]
+        slot = np.int64((np.uint64(k) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(64 - bits))
+        while True:
+            j = slots[slot]
+            if j < 0:
+                slots[slot] = i
+                out[m] = i
+                m += 1
+                break
+            if keys[j] == k:
+                break
+            slot = (slot + 1) & mask
+    return out[:m]
+
+
+def voxel_thin(points_xy: FloatArray, voxel_m: float) -> NDArray[np.int64]:
+    """Indices, in input order, of the first point (P, 2) in each occupied ``voxel_m`` square."""
+    if points_xy.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    cells = np.floor(points_xy / voxel_m).astype(np.int64)
+    cells -= cells.min(axis=0)
+    return _first_of_each(cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1])
+
+
 # ---------------------------------------------------------------------------------------------------------
 # The grid
 

@@ -19,6 +19,7 @@ from slam.scan_matching import (
     overlap,
     refine_point_to_line,
     scan_normals,
+    voxel_thin,
 )
 
 ROOM = [  # walls as segments (x0, y0, x1, y1): a 10 x 6 m room with a pillar and a notch
@@ -293,3 +294,22 @@ def test_the_motion_prior_picks_the_pose_near_the_prediction_among_equal_matches
         prior_weight=0.1,
     )
     assert abs(found.pose_xytheta[0] - 0.4) < 0.051 and abs(found.pose_xytheta[1] - 1.0) < 0.051
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 5000, 120_000])
+def test_voxel_thin_keeps_the_first_point_of_every_voxel(n: int) -> None:
+    """Against the sorting definition (np.unique's first index per voxel), with repeated points and
+    negative coordinates: the hash table must give the same points in the same order."""
+    rng = np.random.default_rng(n)
+    pts = rng.normal(scale=4.0, size=(n, 2)) - 3.0
+    pts = np.concatenate([pts, pts[: n // 3] + 1e-4])  # near-duplicates, most in their originals' voxels
+    got = voxel_thin(pts, 0.05)
+    if len(pts) == 0:
+        assert got.shape == (0,)
+        return
+    cells = np.floor(pts / 0.05).astype(np.int64)
+    keys = [tuple(c) for c in cells]
+    first: dict[tuple, int] = {}
+    for i, key in enumerate(keys):
+        first.setdefault(key, i)
+    np.testing.assert_array_equal(got, sorted(first.values()))
