@@ -109,7 +109,8 @@ class PoseGraph:
 
     @property
     def edge_table(self) -> EdgeTable:
-        """:attr:`edges` as an :class:`EdgeTable` (brought up to date here, the new edges only)."""
+        """:attr:`edges` as an :class:`EdgeTable`, brought up to date here with the edges added since the last
+        read (the graph only ever appends edges)."""
         self._edge_table.extend(self.edges[len(self._edge_table) :])
         return self._edge_table
 
@@ -384,8 +385,8 @@ class EdgeTable:
 
     @property
     def is_loop(self) -> NDArray[np.bool_]:
-        """(E,) which edges are loop closures."""
-        return self._loop[: self._n]
+        """(E,) which edges are loop closures (a copy)."""
+        return self._loop[: self._n].copy()
 
     def errors2(self, poses_xytheta: FloatArray) -> FloatArray:
         """(E,) squared whitened errors ``r^T cov^-1 r`` of every edge at ``poses_xytheta`` (K, 3), without
