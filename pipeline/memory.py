@@ -157,7 +157,10 @@ def pretouch_heap(nbytes: int) -> Iterator[dict[str, int]]:
     def touch() -> None:
         left = nbytes
         while left > 0 and not stop.is_set():
-            block = np.empty(min(left, PRETOUCH_BLOCK_BYTES), np.uint8)
+            try:
+                block = np.empty(min(left, PRETOUCH_BLOCK_BYTES), np.uint8)
+            except MemoryError:  # the estimate was too much for this machine: keep what is touched
+                return
             blocks.append(block)
             _fence_after(libc, block.ctypes.data + block.size)
             for start in range(0, block.size, PRETOUCH_CHUNK_BYTES):

@@ -182,3 +182,27 @@ def test_available_memory_is_the_lower_of_the_machine_and_a_container_limit(tmp_
     assert available_bytes(str(meminfo), str(cgroup)) == 3 * 2**30  # the container's limit leaves less
     assert available_bytes(str(tmp_path / "none"), str(cgroup)) == 3 * 2**30
     assert available_bytes(str(tmp_path / "none"), str(tmp_path / "none")) is None
+
+
+def test_pretouch_stops_quietly_when_memory_runs_out(monkeypatch) -> None:
+    """An estimate the machine cannot hold ends the thread without an exception escaping it (a thread's
+    uncaught exception would be printed, and the command line prints nothing of its own)."""
+    import threading
+    import types
+
+    import numpy as np
+
+    import pipeline.memory as memory
+
+    def no_memory(*args, **kwargs):
+        raise MemoryError
+
+    escaped: list[BaseException] = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: escaped.append(args.exc_value))
+    monkeypatch.setattr(memory, "_LIBC", object())  # as if the policy were applied
+    monkeypatch.setattr(memory, "available_bytes", lambda: 2**40)
+    monkeypatch.setattr(memory, "np", types.SimpleNamespace(empty=no_memory, uint8=np.uint8))
+    with memory.pretouch_heap(2**30) as done:
+        pass
+    assert done["bytes"] == 0
+    assert not escaped
