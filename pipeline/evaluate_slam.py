@@ -27,6 +27,7 @@ base poses, not the laser's (docs/evaluation.md). The returned dict has the SPEC
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +41,8 @@ from pipeline.errors import PipelineError
 from pipeline.progress import Progress
 from slam import geometry as se2
 from slam import metrics
+from slam.config import SlamConfig
+from slam.odometry import scan_points_base
 from slam.result import SlamResult
 from slam.system import run_slam_recording, wheel_poses_of
 
@@ -92,7 +95,9 @@ def evaluate_slam(
     if ref is not None:
         out["reference"]["scan_matching"] = scan_matching
     if relations is not None:
-        out["relations"] = score_relations(result, relations, rel_match, wheel_poses_of(rec))
+        out["relations"] = score_relations(
+            result, relations, rel_match, wheel_poses_of(rec), scan_points_of(rec, config.slam)
+        )
     out["table"] = _table(out)
     return out
 
@@ -272,7 +277,11 @@ def match_relations(rec: Recording, relations: Any, relations_path: str | Path) 
 
 
 def score_relations(
-    result: SlamResult, relations: Any, matched: tuple, wheel_xytheta: np.ndarray | None = None
+    result: SlamResult,
+    relations: Any,
+    matched: tuple,
+    wheel_xytheta: np.ndarray | None = None,
+    scan_points: Callable[[int], np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """The relations metric (SPEC keys) of the trajectory after loop closure, plus ``before`` and counts.
 
@@ -282,7 +291,8 @@ def score_relations(
     ``wheels_local``, with the (N, 3) wheel poses at the scans ``wheel_xytheta``: the wheel odometry alone
     on the local relations, what scan matching has to beat. ``closures``: the accepted loop closures that a
     relation joins, judged by it (:func:`slam.metrics.closures_against_relations`): the benchmark's truth,
-    where a corrected log's poses may err by degrees.
+    where a corrected log's poses may err by degrees; with ``scan_points`` (:func:`scan_points_of`) each
+    wrong one also says whether its scans overlap more at its pose than at the relation's (``disputed``).
     """
     name, ok, i1, i2 = matched
     a, b = i1[ok], i2[ok]
@@ -312,10 +322,31 @@ def score_relations(
         np.array([c.relative_xytheta for c in lc]).reshape(-1, 3),
         (a, b),
         target,
+        scan_points=scan_points,
     )
     out["unmatched"] = int(np.sum(~ok))
     out["matched_by"] = name
     return out
+
+
+def scan_points_of(rec: Recording, slam_config: SlamConfig) -> Callable[[int], np.ndarray]:
+    """Scan index -> its (P, 2) base-frame end points, as SLAM registers them (the odometry's range
+    limits), computed on demand: the relations' arbiter needs a few scans, not all."""
+    scans, cfg = rec.scans, slam_config.odometry
+    mount = np.asarray(rec.laser_in_base_xytheta, dtype=np.float64)
+
+    def points(i: int) -> np.ndarray:
+        return scan_points_base(
+            scans.ranges_m[i],
+            scans.angles_rad[i],
+            scans.range_min_m[i],
+            scans.range_max_m[i],
+            mount,
+            cfg.min_range_m,
+            cfg.max_range_m,
+        )
+
+    return points
 
 
 def judged_closures_text(judged: dict[str, Any] | None) -> str:
@@ -329,7 +360,10 @@ def judged_closures_text(judged: dict[str, Any] | None) -> str:
         return max(w["error_m"] / metrics.CLOSURE_TOLERANCE_M, w["error_deg"] / metrics.CLOSURE_TOLERANCE_DEG)
 
     worst = max(judged["wrong"], key=beyond, default=None)
-    wrong = "" if worst is None else f" (worst {worst['error_m']:.2f} m / {worst['error_deg']:.1f} deg)"
+    wrong = "" if worst is None else f" (worst {worst['error_m']:.2f} m / {worst['error_deg']:.1f} deg"
+    if worst is not None and judged.get("disputed") is not None:
+        wrong += f"; the scans dispute {judged['disputed']} of {len(judged['wrong'])}"
+    wrong += ")" if worst is not None else ""
     return f"{judged['correct']} / {judged['judged']}{wrong}"
 
 

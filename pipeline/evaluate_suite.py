@@ -75,6 +75,7 @@ from pipeline.evaluate_map import (
 from pipeline.evaluate_slam import (
     match_reference_counted,
     match_relations,
+    scan_points_of,
     score_relations,
     slam_and_score,
 )
@@ -537,7 +538,9 @@ def _evaluate(
     if ref is not None:
         out["reference"]["scan_matching"] = scan_matching  # as evaluate slam
     if relations is not None:
-        out["relations"] = score_relations(result, relations, rel_match, wheel_poses_of(rec))
+        out["relations"] = score_relations(
+            result, relations, rel_match, wheel_poses_of(rec), scan_points_of(rec, config.slam)
+        )
     slam = out["slam"]
     timings["slam_s"] = slam["wall_s"]
     if synthetic:

@@ -460,7 +460,9 @@ def suite_markdown(
             "2009) after loop closure; then ours split (count: m / deg) into the local relations (at most "
             f"{LOCAL_TRAVEL_M:g} m of travel apart: the front end) and those across passes (the loop "
             "closures), and the wheel odometry alone on the local ones; last, the accepted loop closures "
-            "whose two places a relation joins, judged by it (0.2 m / 2 deg).",
+            "whose two places a relation joins, judged by it (0.2 m / 2 deg), and of the wrong ones those "
+            "the relation's own scans dispute (they overlap more at the closure's pose than at the "
+            "relation's: docs/evaluation.md).",
             "",
             published,
             "",

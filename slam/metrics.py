@@ -13,10 +13,12 @@ and the consistency of pose covariances (NEES).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from slam import geometry as se2
 
@@ -211,6 +213,7 @@ def closures_against_relations(
     bridge_scans: int = RELATION_BRIDGE_SCANS,
     tolerance_m: float = CLOSURE_TOLERANCE_M,
     tolerance_deg: float = CLOSURE_TOLERANCE_DEG,
+    scan_points: Callable[[int], FloatArray] | None = None,
 ) -> dict[str, object]:
     """Loop closures judged by the benchmark's relations, where a relation joins the closure's two places.
 
@@ -223,7 +226,14 @@ def closures_against_relations(
     (K,) keyframe scans, (C,) query and target keyframes, (C, 3) relative poses, the relations' (R,) scans
     ``(scan1, scan2)`` and (R, 3) relative poses (scan2's pose in scan1's frame). Returns ``judged``,
     ``correct``, ``precision`` (None when none is judged), ``bridge_scans`` and ``wrong``: per wrong
-    closure its keyframes and its translation (m) and rotation (deg) errors."""
+    closure its keyframes and its translation (m) and rotation (deg) errors.
+
+    The relations are hand-checked scan alignments and can err too. With ``scan_points`` (scan index ->
+    its (P, 2) base-frame points), each wrong closure also gets the overlap of the relation's two scans
+    (:func:`scan_overlap`) at the relation's relative pose and at the closure's (carried to those scans by
+    the odometry), and is ``disputed`` when
+    the scans overlap more at the closure's (by :data:`DISPUTE_MARGIN`); ``disputed`` counts those (None
+    without ``scan_points``). A disputed closure still counts as wrong: the scans are evidence, not truth."""
     kf = np.asarray(keyframe_scans, dtype=np.int64)
     odo = np.asarray(odometry_xytheta, dtype=np.float64)
     s1, s2 = (np.asarray(x, dtype=np.int64) for x in relation_scans)
@@ -253,16 +263,54 @@ def closures_against_relations(
         if err_m <= tolerance_m and err_deg <= tolerance_deg:
             correct += 1
         else:
-            wrong.append(
-                {"query_keyframe": int(q), "target_keyframe": int(t), "error_m": err_m, "error_deg": err_deg}
-            )
+            item: dict[str, float | int | bool] = {
+                "query_keyframe": int(q),
+                "target_keyframe": int(t),
+                "error_m": err_m,
+                "error_deg": err_deg,
+            }
+            if scan_points is not None:  # the relation's own two scans, at its pose and at the closure's
+                at_closure = se2.compose(
+                    se2.compose(se2.between(odo[a], odo[st]), measured), se2.between(odo[sq], odo[b])
+                )
+                tgt, qry = scan_points(int(a)), scan_points(int(b))
+                item["overlap_at_closure"] = scan_overlap(tgt, qry, at_closure)
+                item["overlap_at_relation"] = scan_overlap(tgt, qry, r)
+                item["disputed"] = item["overlap_at_closure"] >= item["overlap_at_relation"] + DISPUTE_MARGIN
+            wrong.append(item)
     return {
         "judged": judged,
         "correct": correct,
         "precision": correct / judged if judged else None,
         "bridge_scans": int(bridge_scans),
         "wrong": wrong,
+        "disputed": None if scan_points is None else sum(bool(w["disputed"]) for w in wrong),
     }
+
+
+#: A query point overlaps the target scan when within this distance of one of its points
+#: (:func:`scan_overlap`): a quarter of the closures' tolerance, so that 2 deg moves a point at 1.5 m out.
+OVERLAP_M = 0.05
+#: A wrong closure is disputed when its scans' overlap at the closure's pose exceeds that at the relation's
+#: by at least this share of the query's points (:func:`closures_against_relations`).
+DISPUTE_MARGIN = 0.02
+
+
+def scan_overlap(
+    target_points_xy: FloatArray,
+    query_points_xy: FloatArray,
+    relative_xytheta: FloatArray,
+    radius_m: float = OVERLAP_M,
+) -> float:
+    """Share of the query scan's points (M, 2, its frame) within ``radius_m`` of a target scan point (P, 2,
+    its frame) when the query is placed at ``relative_xytheta`` (3,: its pose in the target's frame); 0 for
+    an empty scan."""
+    qry = np.asarray(query_points_xy, dtype=np.float64).reshape(-1, 2)
+    tgt = np.asarray(target_points_xy, dtype=np.float64).reshape(-1, 2)
+    if qry.shape[0] == 0 or tgt.shape[0] == 0:
+        return 0.0
+    d, _ = cKDTree(tgt).query(se2.transform_points(np.asarray(relative_xytheta, dtype=np.float64), qry))
+    return float(np.mean(d <= radius_m))
 
 
 def reference_noise_sigma(reference_xytheta: FloatArray, odometry_xytheta: FloatArray) -> tuple[float, float]:

@@ -8,7 +8,7 @@ import numpy as np
 
 from datasets.registry import open_dataset
 from datasets.relations import Relations, read_relations
-from pipeline.evaluate_slam import match_reference, match_relations, score_relations
+from pipeline.evaluate_slam import judged_closures_text, match_reference, match_relations, score_relations
 from slam import geometry as se2
 from slam import metrics
 from tests.conftest import data_file
@@ -83,6 +83,18 @@ def test_relations_split_into_local_and_revisits_with_the_wheels_alone_on_the_lo
     judged = out["closures"]  # 0 -> 160 and 30 -> 190 join keyframes 0 / 16 and 3 / 19; none reaches 5 / 12
     assert judged["judged"] == 2 and judged["correct"] == 1
     assert [(w["query_keyframe"], round(w["error_m"], 9)) for w in judged["wrong"]] == [(19, 0.5)]
+    assert judged["disputed"] is None and judged_closures_text(judged) == "1 / 2 (worst 0.50 m / 0.0 deg)"
+    # scattered landmarks seen from every pose: the scans side with the (exact) relation, not the closure
+    world = np.random.default_rng(0).uniform(-80.0, 80.0, (4000, 2))
+    scans = score_relations(
+        result,
+        relations,
+        match_relations(rec, relations, "r.relations"),
+        wheels,
+        lambda i: se2.transform_points(se2.inverse(base[i]), world),
+    )["closures"]
+    assert scans["disputed"] == 0 and scans["wrong"][0]["overlap_at_relation"] == 1.0
+    assert judged_closures_text(scans) == "1 / 2 (worst 0.50 m / 0.0 deg; the scans dispute 0 of 1)"
     wheels[15] += np.array([0.2, 0.0, 0.0])  # now the relation 10 -> 15 is off by 0.2 m
     out = score_relations(result, relations, match_relations(rec, relations, "r.relations"), wheels)
     assert abs(out["wheels_local"]["trans_mean_m"] - 0.2 / 4) < 1e-9

@@ -147,3 +147,48 @@ def test_reference_noise_is_the_jitter_of_a_reference_against_a_smooth_odometry(
     assert sxy == pytest.approx(0.01, rel=0.1)
     assert np.degrees(sth) == pytest.approx(0.3, rel=0.1)
     assert metrics.reference_noise_sigma(odo, odo) == (0.0, 0.0)
+
+
+def test_the_scans_dispute_a_relation_that_is_wrong_and_back_one_that_is_right() -> None:
+    """The loop of the test above in a 14 m square room, each scan the room's walls in its own frame. A
+    closure 3 deg off an exact relation: wrong, and the relation's scans overlap more at the relation's pose
+    (not disputed). An exact closure judged by a relation 3 deg off: wrong, but the scans overlap more at the
+    closure's pose (disputed). Without scan points nothing is disputed or measured."""
+    ang = np.linspace(0.0, 2.0 * np.pi, 40, endpoint=False)
+    truth = np.column_stack([5.0 * np.cos(ang), 5.0 * np.sin(ang), ang + np.pi / 2])
+    side = np.linspace(-7.0, 7.0, 281)
+    walls = np.concatenate(
+        [np.column_stack([side, np.full_like(side, c)]) for c in (-7.0, 7.0)]
+        + [np.column_stack([np.full_like(side, c), side]) for c in (-7.0, 7.0)]
+    )
+
+    def scan_points(i: int) -> np.ndarray:
+        return se2.transform_points(se2.inverse(truth[i]), walls)
+
+    keyframes = np.arange(0, 40, 4)
+    pairs = np.array([[1, 37], [6, 30]])  # near keyframes 0 / 9 and 1 / 7
+    relations = se2.between(truth[pairs[:, 0]], truth[pairs[:, 1]])
+    relations[1, 2] += np.radians(3.0)  # the second relation is wrong
+    query, target = np.array([9, 7]), np.array([0, 1])
+    closures = se2.between(truth[keyframes[target]], truth[keyframes[query]])
+    closures[0, 2] += np.radians(3.0)  # the first closure is wrong
+    args = (keyframes, truth, query, target, closures, (pairs[:, 0], pairs[:, 1]), relations)
+    out = metrics.closures_against_relations(*args, bridge_scans=3, scan_points=scan_points)
+    assert out["judged"] == 2 and out["correct"] == 0 and out["disputed"] == 1
+    by_query = {w["query_keyframe"]: w for w in out["wrong"]}
+    assert not by_query[9]["disputed"] and by_query[9]["overlap_at_relation"] == pytest.approx(1.0)
+    assert by_query[9]["overlap_at_closure"] < 0.5
+    assert by_query[7]["disputed"] and by_query[7]["overlap_at_closure"] == pytest.approx(1.0)
+    assert by_query[7]["overlap_at_relation"] < 0.5
+    plain = metrics.closures_against_relations(*args, bridge_scans=3)
+    assert plain["disputed"] is None and all("disputed" not in w for w in plain["wrong"])
+
+
+def test_scan_overlap_counts_query_points_near_the_target() -> None:
+    """Half of the query's points land on the target's at the right pose; none 1 m off; an empty scan
+    overlaps nothing."""
+    target = np.column_stack([np.linspace(0.0, 1.0, 11), np.zeros(11)])
+    query = np.vstack([target, target + np.array([0.0, 3.0])])
+    assert metrics.scan_overlap(target, query, np.zeros(3)) == pytest.approx(0.5)
+    assert metrics.scan_overlap(target, query, np.array([0.0, 1.0, 0.0])) == 0.0
+    assert metrics.scan_overlap(target, np.zeros((0, 2)), np.zeros(3)) == 0.0
