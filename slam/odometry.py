@@ -307,6 +307,9 @@ class _KissRegistration:
         )
 
 
+#: Dense steps without wheels registered before their window adapts to the model's errors.
+MODEL_MIN_STEPS = 10
+
 #: Translation windows of at most this many cells each side are searched exhaustively (correlative_search
 #: without its coarse-to-fine stage).
 EXHAUSTIVE_MAX_CELLS = 4
@@ -332,16 +335,16 @@ def search_window(
     windows use a step of at least 0.25 deg (the refinement that follows recovers the rest); ``thin``
     searches with one point per 2 x 2 cells (dense scans, branch and bound)."""
     step = max(theta_step_rad, math.radians(0.25)) if window_rad > 0.2 else theta_step_rad
+    if thin:
+        # one point per 2x2 cells, as a dense scanner's neighbouring beams score the same cells (681 beams
+        # within 5.6 m)
+        points_xy = points_xy[voxel_thin(points_xy, 2.0 * target.resolution_m)]
     few_cells = math.ceil(window_m / target.resolution_m) <= EXHAUSTIVE_MAX_CELLS
     if few_cells and (window_rad <= 0.2 or prior_weight == 0.0):
         return correlative_search(
             target, points_xy, center_xytheta, window_m, window_rad, step, coarse_factor=EXHAUSTIVE_MAX_CELLS
         )
     sxy, sth = sigma_xytheta if sigma_xytheta is not None else (None, None)
-    if thin:
-        # one point per 2x2 cells, as a dense scanner's neighbouring beams score the same cells (681 beams
-        # within 5.6 m)
-        points_xy = points_xy[voxel_thin(points_xy, 2.0 * target.resolution_m)]
     return branch_and_bound_search(
         target,
         points_xy,
@@ -503,6 +506,8 @@ class _Odometer:
         self.velocity_known = False  # without wheels: last_inc comes from two registered scans
         self.fallback_run = 0  # consecutive rejected registrations
         self.short_steps = 0  # consecutive registered steps within no_wheels_dense_step_*
+        self.model_sq = np.zeros(2)  # dense steps: sums of squared guess deviations (xy m^2, rad^2) ...
+        self.model_count = 0  # ... over this many steps
         self.restarts = 0
         self.retries = 0
         self.last_insert: FloatArray | None = None
@@ -567,6 +572,45 @@ class _Odometer:
         normals = self._normals()[self.sel] if cfg.normal_check else None
         t0 = time.perf_counter()
         window_m, window_rad, dense = self._windows(motion)
+        reg = None
+        tight = self._model_window() if dense and self.kiss is None else None
+        if tight is not None:  # dense scans: first the window the model's recent errors call for
+            reg = self._match(target, pts, normals, motion, *tight, dense)
+            dev = se2.between(motion.pose, reg.pose)
+            inside = math.hypot(dev[0], dev[1]) <= 0.5 * tight[0] and abs(dev[2]) <= 0.5 * tight[1]
+            if reg.accepted and inside:
+                self._model_deviation(dev)
+            else:
+                reg = None
+        if reg is None:
+            reg = self._match(target, pts, normals, motion, window_m, window_rad, dense)
+            if dense and reg.accepted:
+                self._model_deviation(se2.between(motion.pose, reg.pose))
+        gate_xy_m = max(cfg.gate_xy_m, math.sqrt(2.0) * window_m)
+        if (
+            motion.wheels
+            and self.kiss is None
+            and (reg.frac < cfg.retry_below_inliers or not reg.accepted)
+            and window_rad < cfg.retry_window_rad
+        ):
+            reg = self._retry(target, pts, normals, motion, window_m, gate_xy_m, reg)
+        self.timings["odometry_match_s"] += time.perf_counter() - t0
+        self.inliers[i] = reg.frac
+        self.rms[i] = reg.al.rms_m
+        return reg
+
+    def _match(
+        self,
+        target: PointGrid,
+        pts: FloatArray,
+        normals: FloatArray | None,
+        motion: _Motion,
+        window_m: float,
+        window_rad: float,
+        dense: bool,
+    ) -> _Registration:
+        """The search within ``+- window`` of the prediction, the refinement, and the gates."""
+        cfg = self.cfg
         if self.kiss is not None:
             start = self.kiss.align(pts, motion.pose)
         else:
@@ -599,17 +643,28 @@ class _Odometer:
         else:  # the guess is no fallback: a match better than chance is kept
             reach_m = math.sqrt(2.0) * window_m + cfg.gate_xy_m
             reg.accepted = reg.frac >= cfg.no_wheels_min_inliers and math.hypot(dev[0], dev[1]) <= reach_m
-        if (
-            motion.wheels
-            and self.kiss is None
-            and (reg.frac < cfg.retry_below_inliers or not reg.accepted)
-            and window_rad < cfg.retry_window_rad
-        ):
-            reg = self._retry(target, pts, normals, motion, window_m, gate_xy_m, reg)
-        self.timings["odometry_match_s"] += time.perf_counter() - t0
-        self.inliers[i] = reg.frac
-        self.rms[i] = reg.al.rms_m
         return reg
+
+    def _model_deviation(self, dev: FloatArray) -> None:
+        """A registered dense step's deviation (3,) from the constant-velocity guess, into the running sums
+        of :meth:`_model_window`."""
+        self.model_sq += np.array([dev[0] ** 2 + dev[1] ** 2, dev[2] ** 2])
+        self.model_count += 1
+
+    def _model_window(self) -> tuple[float, float] | None:
+        """The compact window of a dense step: three times the RMS deviation of the constant-velocity guess
+        from the registered poses so far (KISS-ICP's adaptive threshold, Vizzo et al. 2023), at least
+        ``search_window_*``; None until enough steps were seen or where it is no smaller than the dense
+        window."""
+        cfg = self.cfg
+        if self.model_count < MODEL_MIN_STEPS:
+            return None
+        rms = np.sqrt(self.model_sq / self.model_count)
+        window_m = max(cfg.search_window_m, 3.0 * float(rms[0]))
+        window_rad = max(cfg.search_window_rad, 3.0 * float(rms[1]))
+        if window_m >= cfg.no_wheels_dense_window_m and window_rad >= cfg.no_wheels_dense_window_rad:
+            return None
+        return min(window_m, cfg.no_wheels_dense_window_m), min(window_rad, cfg.no_wheels_dense_window_rad)
 
     def _retry(
         self,

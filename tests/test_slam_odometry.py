@@ -10,7 +10,7 @@ from datasets.carmen import match_scans
 from datasets.registry import open_dataset
 from datasets.simulation import make_world
 from slam import geometry as se2
-from slam import metrics
+from slam import metrics, odometry
 from slam.config import OdometryConfig
 from slam.keyframes import keyframe_of_scan, select_keyframes
 from slam.odometry import (
@@ -279,3 +279,75 @@ def test_each_kept_point_counts_for_the_points_it_stands_for(fr079_scans) -> Non
     np.testing.assert_allclose(thinned[2], copies[2], rtol=1e-9)
     plain = _refine(grid, scan, start, wheel[10], prior, None, cfg, True)
     assert np.trace(plain[2]) < 0.5 * np.trace(thinned[2])  # the weight is not ignored
+
+
+@pytest.fixture(scope="module")
+def demo_scans() -> list[np.ndarray]:
+    """lsm-demo's 360 scans (681 beams at 10 Hz, no wheel odometry), base frame."""
+    rec = open_dataset(data_file("lsm-demo/demo_index_fixed.bag"))
+    return scans_points_base(rec.scans, rec.laser_in_base_xytheta, OdometryConfig())
+
+
+def _recording_windows(monkeypatch) -> dict[int, list[tuple[float, float]]]:
+    """Every search window (m, rad) run_odometry asks for, by scan index."""
+    windows: dict[int, list[tuple[float, float]]] = {}
+    current = [-1]
+    real_search, real_register = odometry.search_window, odometry._Odometer.register
+
+    def search(target, pts, center, window_m, window_rad, *args, **kwargs):
+        windows.setdefault(current[0], []).append((window_m, window_rad))
+        return real_search(target, pts, center, window_m, window_rad, *args, **kwargs)
+
+    def register(self, i, pts, motion):
+        current[0] = i
+        return real_register(self, i, pts, motion)
+
+    monkeypatch.setattr(odometry, "search_window", search)
+    monkeypatch.setattr(odometry._Odometer, "register", register)
+    return windows
+
+
+def test_dense_scans_without_wheels_search_the_window_the_model_errors_call_for(
+    demo_scans, monkeypatch
+) -> None:
+    """A 10 Hz scanner without wheels: once ten dense steps are registered, each search spans three times
+    the RMS error of the constant-velocity guess (at least search_window_*), not the whole dense window,
+    and finds the same poses: the best pose lay inside the smaller window all along."""
+    cfg = OdometryConfig()
+    windows = _recording_windows(monkeypatch)
+    adaptive = run_odometry(demo_scans, None, cfg)
+    first = [ws[0] for ws in windows.values()]
+    compact = [w for w in first if w[0] < cfg.no_wheels_dense_window_m]
+    assert len(compact) > 0.9 * len(demo_scans)
+    assert all(w == (cfg.search_window_m, cfg.search_window_rad) for w in compact)  # the floor: 10 Hz
+    assert sum(len(ws) > 1 for ws in windows.values()) < 0.05 * len(demo_scans)  # few searched again
+    monkeypatch.setattr(odometry, "MODEL_MIN_STEPS", 10**9)  # never adapt: the dense window every time
+    windows.clear()
+    fixed = run_odometry(demo_scans, None, cfg)
+    assert not [w for ws in windows.values() for w in ws if w[0] < cfg.no_wheels_dense_window_m]
+    np.testing.assert_array_equal(adaptive.poses_xytheta, fixed.poses_xytheta)
+    np.testing.assert_array_equal(adaptive.status, fixed.status)
+
+
+def test_a_jump_beyond_the_adapted_window_is_searched_in_the_dense_window(demo_scans, monkeypatch) -> None:
+    """Twenty scans dropped (2 s, 0.6 m of travel): the guess of the step across the gap errs by more
+    than the adapted window covers, so that step is searched again in the whole dense window and lands
+    where the unbroken sequence puts the scan."""
+    cfg = OdometryConfig()
+    whole = run_odometry(demo_scans, None, cfg)
+    gap = list(range(250, 270))
+    kept = [i for i in range(len(demo_scans)) if i not in gap]
+    windows = _recording_windows(monkeypatch)
+    broken = run_odometry([demo_scans[i] for i in kept], None, cfg)
+    after = kept.index(270)
+    # the step across the gap: a compact search, then the dense window
+    assert windows[after] == [
+        (cfg.search_window_m, cfg.search_window_rad),
+        (cfg.no_wheels_dense_window_m, cfg.no_wheels_dense_window_rad),
+    ]
+    assert broken.status[after] == MATCHED
+    err = se2.between(
+        se2.between(whole.poses_xytheta[249], whole.poses_xytheta[270]),
+        se2.between(broken.poses_xytheta[after - 1], broken.poses_xytheta[after]),
+    )
+    assert np.hypot(err[0], err[1]) < 0.03 and abs(np.degrees(err[2])) < 1.0
