@@ -42,7 +42,7 @@ from pipeline.progress import Progress
 from slam import geometry as se2
 from slam import metrics
 from slam.config import SlamConfig
-from slam.odometry import scan_points_base
+from slam.odometry import scan_points_at
 from slam.result import SlamResult
 from slam.system import run_slam_recording, wheel_poses_of
 
@@ -336,15 +336,7 @@ def scan_points_of(rec: Recording, slam_config: SlamConfig) -> Callable[[int], n
     mount = np.asarray(rec.laser_in_base_xytheta, dtype=np.float64)
 
     def points(i: int) -> np.ndarray:
-        return scan_points_base(
-            scans.ranges_m[i],
-            scans.angles_rad[i],
-            scans.range_min_m[i],
-            scans.range_max_m[i],
-            mount,
-            cfg.min_range_m,
-            cfg.max_range_m,
-        )
+        return scan_points_at(scans, i, mount, cfg)
 
     return points
 

@@ -123,18 +123,22 @@ def scans_points_base(
     limits of ``cfg``: a list of (P_i, 2) arrays."""
     n = len(scans) if count is None else count
     mount = np.asarray(laser_in_base_xytheta, dtype=np.float64)
-    return [
-        scan_points_base(
-            scans.ranges_m[i],
-            scans.angles_rad[i],
-            scans.range_min_m[i],
-            scans.range_max_m[i],
-            mount,
-            cfg.min_range_m,
-            cfg.max_range_m,
-        )
-        for i in range(n)
-    ]
+    return [scan_points_at(scans, i, mount, cfg) for i in range(n)]
+
+
+def scan_points_at(
+    scans: ScanSequence, i: int, laser_in_base_xytheta: FloatArray, cfg: OdometryConfig
+) -> FloatArray:
+    """:func:`scan_points_base` of scan ``i`` of ``scans`` with the range limits of ``cfg``: (P, 2)."""
+    return scan_points_base(
+        scans.ranges_m[i],
+        scans.angles_rad[i],
+        scans.range_min_m[i],
+        scans.range_max_m[i],
+        laser_in_base_xytheta,
+        cfg.min_range_m,
+        cfg.max_range_m,
+    )
 
 
 # the widest spacing along the scan that match_subset tries (Cartographer's adaptive voxel filter: 0.5 m)
