@@ -343,20 +343,22 @@ def scan_points_of(rec: Recording, slam_config: SlamConfig) -> Callable[[int], n
 
 def judged_closures_text(judged: dict[str, Any] | None) -> str:
     """``correct / judged`` of the loop closures a relation judges (:func:`score_relations`), with the
-    wrong one furthest beyond the tolerance; ``-`` when none is judged (or a JSON from before the
-    judgement)."""
+    wrong one furthest beyond the tolerance and how many wrong ones the scans dispute; ``-`` when none is
+    judged (or a JSON from before the judgement)."""
     if not judged or not judged.get("judged"):
         return "-"
 
     def beyond(w: dict[str, float]) -> float:  # how many tolerances off
         return max(w["error_m"] / metrics.CLOSURE_TOLERANCE_M, w["error_deg"] / metrics.CLOSURE_TOLERANCE_DEG)
 
+    counts = f"{judged['correct']} / {judged['judged']}"
     worst = max(judged["wrong"], key=beyond, default=None)
-    wrong = "" if worst is None else f" (worst {worst['error_m']:.2f} m / {worst['error_deg']:.1f} deg"
-    if worst is not None and judged.get("disputed") is not None:
-        wrong += f"; the scans dispute {judged['disputed']} of {len(judged['wrong'])}"
-    wrong += ")" if worst is not None else ""
-    return f"{judged['correct']} / {judged['judged']}{wrong}"
+    if worst is None:
+        return counts
+    note = f"worst {worst['error_m']:.2f} m / {worst['error_deg']:.1f} deg"
+    if judged.get("disputed") is not None:
+        note += f"; the scans dispute {judged['disputed']} of {len(judged['wrong'])}"
+    return f"{counts} ({note})"
 
 
 def _table(out: dict[str, Any]) -> dict[str, Any]:

@@ -231,9 +231,9 @@ def closures_against_relations(
     The relations are hand-checked scan alignments and can err too. With ``scan_points`` (scan index ->
     its (P, 2) base-frame points), each wrong closure also gets the overlap of the relation's two scans
     (:func:`scan_overlap`) at the relation's relative pose and at the closure's (carried to those scans by
-    the odometry), and is ``disputed`` when
-    the scans overlap more at the closure's (by :data:`DISPUTE_MARGIN`); ``disputed`` counts those (None
-    without ``scan_points``). A disputed closure still counts as wrong: the scans are evidence, not truth."""
+    the odometry), and is ``disputed`` when they overlap more at the closure's (by
+    :data:`DISPUTE_MARGIN`); ``disputed`` counts those (None without ``scan_points``). A disputed closure
+    still counts as wrong: the scans are evidence, not truth (weak evidence where scans are sparse)."""
     kf = np.asarray(keyframe_scans, dtype=np.int64)
     odo = np.asarray(odometry_xytheta, dtype=np.float64)
     s1, s2 = (np.asarray(x, dtype=np.int64) for x in relation_scans)

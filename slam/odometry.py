@@ -20,9 +20,11 @@ prediction and its uncertainty (:func:`remap_degenerate`). A point-to-line regis
 of its points or that the gates reject is searched again over every heading within ``retry_window_rad``
 (wheels can turn 10-20 deg wrong between the keyframes of a sparse log) and the better-explaining match
 kept. Either result is rejected -- and the wheel prediction used instead, with the wheel uncertainty --
-when too few points match or the motion deviates implausibly from the wheels. A gap in the wheel records
-(a NaN wheel pose) makes the steps around it steps without wheels. Each scan gets the covariance of its
-registration, ``(H / sigma^2 + Lambda_wheel)^-1`` (world frame), which the graph scales into factor noise.
+when too few points match or the motion deviates implausibly from the wheels. Without wheels the prediction
+is a constant-velocity guess, searched widely (branch and bound); dense scans are searched in a compact
+window that adapts to the guess's recent errors. A gap in the wheel records (a NaN wheel pose) makes the
+steps around it steps without wheels. Each scan gets the covariance of its registration,
+``(H / sigma^2 + Lambda_wheel)^-1`` (world frame), which the graph scales into factor noise.
 """
 
 from __future__ import annotations
@@ -568,7 +570,10 @@ class _Odometer:
     def register(self, i: int, pts: FloatArray, motion: _Motion) -> _Registration | None:
         """Scan ``i`` registered against the older submap around the prediction: the correlative search
         (or KISS-ICP), the point-to-line refinement with the prediction as prior, the gates, and a wider
-        retry of a poor or rejected wheel-seeded match. None when there is no submap or too few points."""
+        retry of a poor or rejected wheel-seeded match. A dense step without wheels is first searched in the
+        window its guess's recent errors call for (:meth:`_model_window`), and again in the dense window
+        when that match is rejected or lands beyond half of it. None when there is no submap or too few
+        points."""
         cfg = self.cfg
         target = self.submaps.target
         if target is None or self.full.shape[0] < cfg.min_points:
