@@ -595,14 +595,13 @@ class _Odometer:
             reg = self._match(target, pts, normals, motion, window_m, window_rad, dense)
             if dense and reg.accepted:
                 self._model_deviation(se2.between(motion.pose, reg.pose))
-        gate_xy_m = max(cfg.gate_xy_m, math.sqrt(2.0) * window_m)
         if (
             motion.wheels
             and self.kiss is None
             and (reg.frac < cfg.retry_below_inliers or not reg.accepted)
             and window_rad < cfg.retry_window_rad
         ):
-            reg = self._retry(target, pts, normals, motion, window_m, gate_xy_m, reg)
+            reg = self._retry(target, pts, normals, motion, window_m, reg)
         self.timings["odometry_match_s"] += time.perf_counter() - t0
         self.inliers[i] = reg.frac
         self.rms[i] = reg.al.rms_m
@@ -641,18 +640,22 @@ class _Odometer:
             self.weight,
         )
         reg = _Registration(al, pose, hessian, al.inliers / pts.shape[0], False)
-        gate_xy_m = max(cfg.gate_xy_m, math.sqrt(2.0) * window_m)
         dev = se2.between(motion.pose, pose)
         if motion.wheels:
             reg.accepted = (
                 reg.frac >= cfg.min_inlier_fraction
-                and math.hypot(dev[0], dev[1]) <= gate_xy_m
+                and math.hypot(dev[0], dev[1]) <= self._gate_xy_m(window_m)
                 and abs(dev[2]) <= max(cfg.gate_theta_rad, window_rad)
             )
         else:  # the guess is no fallback: a match better than chance is kept
             reach_m = math.sqrt(2.0) * window_m + cfg.gate_xy_m
             reg.accepted = reg.frac >= cfg.no_wheels_min_inliers and math.hypot(dev[0], dev[1]) <= reach_m
         return reg
+
+    def _gate_xy_m(self, window_m: float) -> float:
+        """The largest accepted translational deviation from the wheel prediction of a search within
+        ``+- window_m``: ``gate_xy_m``, or the window's diagonal where that is wider."""
+        return max(self.cfg.gate_xy_m, math.sqrt(2.0) * window_m)
 
     def _model_deviation(self, dev: FloatArray) -> None:
         """A registered dense step's deviation (3,) from the constant-velocity guess, into the running sums
@@ -682,7 +685,6 @@ class _Odometer:
         normals: FloatArray | None,
         motion: _Motion,
         window_m: float,
-        gate_xy_m: float,
         reg: _Registration,
     ) -> _Registration:
         """A poor match or a rejected one: the wheels may have turned wrong by more than the window (sparse
@@ -702,7 +704,7 @@ class _Odometer:
         if (
             frac2 >= cfg.min_inlier_fraction
             and (frac2 > reg.frac or not reg.accepted)
-            and math.hypot(dev2[0], dev2[1]) <= gate_xy_m
+            and math.hypot(dev2[0], dev2[1]) <= self._gate_xy_m(window_m)
             and abs(dev2[2]) <= cfg.retry_window_rad
         ):
             return _Registration(al2, pose2, hessian2, frac2, True)
