@@ -36,8 +36,9 @@ class OdometryConfig(BaseModel):
     match_points: int = Field(
         200,
         ge=0,
-        description="with wheel odometry, a scan with more valid points is registered with about this many "
-        "(at least): those at the widest spacing along the scan (at most 0.5 m) that keeps this many, each "
+        description="with wheel odometry (without: once the steps are dense), a scan with more valid points "
+        "is registered with about this many (at least): those at the widest spacing along the scan (at most "
+        "0.5 m) that keeps this many, each "
         "standing for the points it replaces in the registration's information (Cartographer's adaptive "
         "voxel filter keeps 200); the submaps get every point; 0: every point",
     )

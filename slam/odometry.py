@@ -525,12 +525,13 @@ class _Odometer:
 
     def use_scan(self, pts: FloatArray) -> FloatArray:
         """Scan ``pts`` (P, 2) becomes the current one: returns the points (M, 2) that register it, each
-        standing for ``P / M`` points in the registration's information: with wheel odometry those of
-        :func:`match_subset`; without, every point (the refinement after a wide search from a
-        constant-velocity guess needs them). The submaps get every point."""
+        standing for ``P / M`` points in the registration's information: those of :func:`match_subset` with
+        wheel odometry, and without it once the steps are dense (a compact search around the guess, as
+        with wheels); otherwise every point (the refinement after a wide search from a constant-velocity
+        guess needs them). The submaps get every point."""
         self.full = pts
-        wheels = self.wheel_inc is not None
-        self.sel = match_subset(pts, self.cfg.match_points if wheels else 0)
+        compact = self.wheel_inc is not None or self._dense_steps()
+        self.sel = match_subset(pts, self.cfg.match_points if compact else 0)
         self.weight = pts.shape[0] / max(self.sel.shape[0], 1)
         self.normals = None
         return pts[self.sel]
@@ -561,11 +562,16 @@ class _Odometer:
         # a constant-velocity guess: search wide, prefer the guess
         window_m = max(cfg.search_window_m, cfg.no_wheels_window_m)
         window_rad = max(cfg.search_window_rad, cfg.no_wheels_window_rad)
-        dense = self.velocity_known and self.short_steps >= 3
+        dense = self._dense_steps()
         if dense:  # scans a few centimetres apart: a compact window suffices
             window_m = min(window_m, cfg.no_wheels_dense_window_m)
             window_rad = min(window_rad, cfg.no_wheels_dense_window_rad)
         return window_m, window_rad, dense
+
+    def _dense_steps(self) -> bool:
+        """Without wheels: the last three steps were registered and short (10 Hz scanners), so the next
+        scan is searched in a compact window around the constant-velocity guess."""
+        return self.velocity_known and self.short_steps >= 3
 
     def register(self, i: int, pts: FloatArray, motion: _Motion) -> _Registration | None:
         """Scan ``i`` registered against the older submap around the prediction: the correlative search

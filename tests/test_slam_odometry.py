@@ -351,3 +351,33 @@ def test_a_jump_beyond_the_adapted_window_is_searched_in_the_dense_window(demo_s
         se2.between(broken.poses_xytheta[after - 1], broken.poses_xytheta[after]),
     )
     assert np.hypot(err[0], err[1]) < 0.03 and abs(np.degrees(err[2])) < 1.0
+
+
+def test_dense_scans_without_wheels_register_thinned_like_with_wheels(demo_scans, monkeypatch) -> None:
+    """Without wheels, once the steps are dense (the compact search), a 681-beam scan registers with about
+    match_points of its points, as with wheels; the first scans (a wide search, the velocity unknown) with
+    every point. Each step stays within a centimetre and a third of a degree of the registration with
+    every point."""
+    cfg = OdometryConfig()
+    used: dict[int, int] = {}
+    real_register = odometry._Odometer.register
+
+    def register(self, i, pts, motion):
+        used[i] = pts.shape[0]
+        return real_register(self, i, pts, motion)
+
+    monkeypatch.setattr(odometry._Odometer, "register", register)
+    thinned = run_odometry(demo_scans, None, cfg)
+    monkeypatch.setattr(odometry._Odometer, "register", real_register)
+    every = run_odometry(demo_scans, None, cfg.model_copy(update={"match_points": 0}))
+    assert [used[i] for i in (1, 2, 3)] == [demo_scans[i].shape[0] for i in (1, 2, 3)]
+    fewer = [i for i in used if used[i] < demo_scans[i].shape[0]]
+    assert len(fewer) > 0.95 * len(demo_scans)
+    assert all(cfg.match_points <= used[i] <= 1.1 * cfg.match_points for i in fewer)
+    assert np.all(thinned.status[1:] == MATCHED) and np.all(every.status[1:] == MATCHED)
+    steps = se2.between(
+        se2.between(every.poses_xytheta[:-1], every.poses_xytheta[1:]),
+        se2.between(thinned.poses_xytheta[:-1], thinned.poses_xytheta[1:]),
+    )
+    assert np.hypot(steps[:, 0], steps[:, 1]).max() < 0.015
+    assert np.degrees(np.abs(steps[:, 2])).max() < 0.4
