@@ -13,6 +13,8 @@
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -77,6 +79,8 @@ def read_scans(path: Path) -> StoredScans:
             off = z["offsets"]
             ranges = z["ranges_m"]
             angles = z["angles_rad"]
+            laser = np.asarray(z["laser_in_base_xytheta"], dtype=np.float64)
+            _check_stored_scans(off, ranges, angles, z["stamps_ns"], laser)
             n = off.shape[0] - 1
             scans = ScanSequence(
                 [ranges[off[i] : off[i + 1]] for i in range(n)],
@@ -88,11 +92,34 @@ def read_scans(path: Path) -> StoredScans:
                 z["source_index"],
                 [str(s) for s in z["sources"]],
             )
-            return StoredScans(scans, np.asarray(z["laser_in_base_xytheta"], dtype=np.float64))
+            return StoredScans(scans, laser)
     except FileNotFoundError:
         raise PipelineError(f"{path}: no such file (not a run folder?)") from None
-    except (OSError, KeyError, ValueError) as exc:
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise PipelineError(f"{path}: not a scans archive ({exc})") from None
+
+
+def _check_stored_scans(
+    offsets: NDArray, ranges_m: NDArray, angles_rad: NDArray, stamps_ns: NDArray, laser_xytheta: NDArray
+) -> None:
+    """ValueError unless the arrays of a ``scans.npz`` fit together: (N+1,) integer offsets from 0, never
+    decreasing, ending at the number of beams; as many ranges as angles, none negative; N stamps; a finite
+    (3,) mounting."""
+    if offsets.ndim != 1 or offsets.shape[0] < 1 or not np.issubdtype(offsets.dtype, np.integer):
+        raise ValueError("offsets is not a list of beam indices")
+    if offsets[0] != 0 or np.any(np.diff(offsets) < 0) or offsets[-1] != ranges_m.shape[0]:
+        raise ValueError(
+            f"offsets do not split its {ranges_m.shape[0]} beams (from {offsets[0]} to {offsets[-1]}, "
+            "never decreasing)"
+        )
+    if angles_rad.shape != ranges_m.shape:
+        raise ValueError(f"{ranges_m.shape[0]} ranges but {angles_rad.shape[0]} angles")
+    if np.any(ranges_m < 0):
+        raise ValueError(f"negative ranges (beam {int(np.argmax(ranges_m < 0))})")
+    if stamps_ns.shape != (offsets.shape[0] - 1,):
+        raise ValueError(f"{offsets.shape[0] - 1} scans but {stamps_ns.shape[0]} stamps")
+    if laser_xytheta.shape != (3,) or not np.all(np.isfinite(laser_xytheta)):
+        raise ValueError(f"laser_in_base_xytheta is not a finite x, y, theta: {laser_xytheta.tolist()}")
 
 
 def write_trajectories(folder: Path, slam: SlamResult) -> dict[str, Path]:

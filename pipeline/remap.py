@@ -159,7 +159,8 @@ def remap_run(
     run_dir = Path(run_dir)
     run_bounds = stored_bounds(read_summary(run_dir), run_dir)
     out_dir = Path(out_dir) if out_dir is not None else default_remap_dir(run_dir)
-    check_output_dir(out_dir, overwrite)
+    reads = [run_dir, poses, covariances]
+    check_output_dir(out_dir, overwrite, reads=reads)
     overrides = {"mapping": {"resolution_m": resolution_m}, "scale": {"scheduler": scheduler}}
     config = load_config(run_dir / "config.yaml", overrides)
     cfg = config.mapping
@@ -224,7 +225,7 @@ def remap_run(
     selected = builder.select_scans(odo_poses, laser)
     with (
         stage_boundary("writing", out_dir, name_known_errors=False),
-        staged_run_folder(out_dir, overwrite) as stage,
+        staged_run_folder(out_dir, overwrite, reads) as stage,
     ):
         write_config(config, stage / "config.yaml")
         (stage / TRAJECTORY_DIR).mkdir()

@@ -38,7 +38,7 @@ from pipeline.artifacts import (
     write_trajectories,
 )
 from pipeline.config import Config, load_config, write_config
-from pipeline.errors import stage_boundary
+from pipeline.errors import PipelineError, stage_boundary
 from pipeline.map_bounds import check_map_cells, map_cells, scan_reach_m, snap_to_lattice, union_bounds
 from pipeline.map_exports import classify_layers, write_maps
 from pipeline.memory import keeping_freed_memory, pretouch_heap
@@ -191,13 +191,19 @@ def run_pipeline(
     config = config if config is not None else load_config()
     out_dir = Path(out_dir) if out_dir is not None else default_run_dir(input_path)
     guess_format(input_path)  # a missing or unknown input fails before anything else
-    check_output_dir(out_dir, overwrite)
+    check_output_dir(out_dir, overwrite, reads=[input_path])
     check_mapper(config.mapping.mapper)
 
     with timer("read"), progress.stage("read", total=1) as bar, stage_boundary("reading", input_path):
         rec = read_input(input_path, config)
         bar.advance()
-    reach_m = scan_reach_m(rec.scans) + MAP_MARGIN_M  # no map of this run is smaller than one scan's disc
+    longest_return_m = scan_reach_m(rec.scans)
+    if longest_return_m <= 0.0:
+        raise PipelineError(
+            f"{input_path}: no scan has a return (every range is below its range_min, or at or above its "
+            "range_max: a no-return reading): nothing to map"
+        )
+    reach_m = longest_return_m + MAP_MARGIN_M  # no map of this run is smaller than one scan's disc
     check_map_cells(
         (-reach_m, -reach_m, reach_m, reach_m),
         config.mapping.resolution_m,
@@ -213,7 +219,7 @@ def run_pipeline(
 
     with (
         stage_boundary("writing", out_dir, name_known_errors=False),
-        staged_run_folder(out_dir, overwrite) as stage,
+        staged_run_folder(out_dir, overwrite, reads=[input_path]) as stage,
     ):
         write_config(config, stage / "config.yaml")
         write_scans(stage / SCANS_FILE, rec.scans, rec.laser_in_base_xytheta)
@@ -471,8 +477,8 @@ def run_demo(
 
     out = Path(out)
     run_dir = out / "run"
-    check_output_dir(run_dir, overwrite)
     bag = out / "input" / f"loop-seed{seed}.mcap"
+    check_output_dir(run_dir, overwrite, reads=[bag])
     if not bag.exists():
         bag.parent.mkdir(parents=True, exist_ok=True)
         simulate("loop", bag, seed=seed)

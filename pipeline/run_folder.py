@@ -14,7 +14,7 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -65,9 +65,14 @@ def probe_writable(folder: Path) -> str | None:
     return None
 
 
-def check_output_dir(out_dir: Path, overwrite: bool, min_free_bytes: int = MIN_FREE_BYTES) -> None:
+def check_output_dir(
+    out_dir: Path, overwrite: bool, min_free_bytes: int = MIN_FREE_BYTES, reads: Iterable[Path | None] = ()
+) -> None:
     """Fail early (before any work) if ``out_dir`` exists and may not be replaced, or cannot be written.
 
+    ``--overwrite`` replaces a run folder (one holding ``summary.json``) or an empty folder, never a folder
+    of other files, and never one that is or holds a path in ``reads`` (the command's input, the run folder
+    it remaps, its pose files): replacing it would delete what the run reads.
     Writable means: the nearest existing ancestor is a folder in which a file can be created (a real probe:
     permissions, read-only file systems and ACLs all count) on a disk with ``min_free_bytes`` free.
     """
@@ -76,6 +81,8 @@ def check_output_dir(out_dir: Path, overwrite: bool, min_free_bytes: int = MIN_F
         raise PipelineError(f"{out_dir}: already exists (use --overwrite to replace it)")
     if out_dir.exists() and not out_dir.is_dir():
         raise PipelineError(f"{out_dir}: exists and is not a folder")
+    if out_dir.exists():
+        _check_replaceable(out_dir, reads)
     ancestor = out_dir.absolute().parent
     while not ancestor.exists() and ancestor != ancestor.parent:
         ancestor = ancestor.parent
@@ -89,6 +96,26 @@ def check_output_dir(out_dir: Path, overwrite: bool, min_free_bytes: int = MIN_F
         raise PipelineError(
             f"{out_dir}: only {free / 2**20:.0f} MiB free on the disk of {ancestor} "
             f"(a run needs at least {min_free_bytes / 2**20:.0f} MiB)"
+        )
+
+
+def _check_replaceable(out_dir: Path, reads: Iterable[Path | None]) -> None:
+    """PipelineError unless ``--overwrite`` may replace the existing folder ``out_dir`` (see
+    :func:`check_output_dir`)."""
+    target = out_dir.resolve()
+    for read in reads:
+        if read is None:
+            continue
+        path = Path(read).resolve()
+        if path == target or target in path.parents:
+            raise PipelineError(
+                f"{out_dir}: holds {read}, which this command reads; --overwrite would delete it "
+                "(choose another --out)"
+            )
+    if not (target / SUMMARY_NAME).is_file() and any(target.iterdir()):
+        raise PipelineError(
+            f"{out_dir}: exists and is not a run folder (no {SUMMARY_NAME}); --overwrite replaces only run "
+            "folders (choose another --out)"
         )
 
 
@@ -123,15 +150,18 @@ def remove_stale_staging(out_dir: Path) -> list[Path]:
 
 
 @contextmanager
-def staged_run_folder(out_dir: Path, overwrite: bool = False) -> Iterator[Path]:
-    """Yield a temporary folder to write a run into; on success it becomes ``out_dir``.
+def staged_run_folder(
+    out_dir: Path, overwrite: bool = False, reads: Iterable[Path | None] = ()
+) -> Iterator[Path]:
+    """Yield a temporary folder to write a run into; on success it becomes ``out_dir`` (``overwrite`` and
+    ``reads``: :func:`check_output_dir`).
 
     The caller writes every file, ``summary.json`` last (see :func:`write_summary`). If the block raises
     (including KeyboardInterrupt, and SIGTERM, which the command line turns into one), the temporary folder
     is deleted and ``out_dir`` is untouched; staging folders left by dead processes are removed first.
     """
     out_dir = Path(out_dir)
-    check_output_dir(out_dir, overwrite)
+    check_output_dir(out_dir, overwrite, reads=reads)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_staging(out_dir)
     staging = out_dir.with_name(f"{out_dir.name}.partial-{os.getpid()}")

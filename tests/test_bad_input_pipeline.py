@@ -216,6 +216,26 @@ def test_gp_training_failure_names_the_input(small_log, tmp_path) -> None:
         run_pipeline(small_log, tmp_path / "r", load_config(cfg))
 
 
+@pytest.mark.parametrize("value", ["0.00", "81.90"], ids=["below_range_min", "no_return"])
+def test_a_log_without_any_return_is_one_line_before_slam(small_log, tmp_path, monkeypatch, value) -> None:
+    """Every range below range_min, or every one the no-return reading: nothing to map, said before SLAM
+    (not as a failed GP training or a traceback after it)."""
+    lines = []
+    for line in small_log.read_text().splitlines():
+        if line.startswith("FLASER"):
+            parts = line.split()
+            n = int(parts[1])
+            parts[2 : 2 + n] = [value] * n
+            line = " ".join(parts)
+        lines.append(line)
+    log = tmp_path / "blank.clf"
+    log.write_text("\n".join(lines) + "\n")
+    monkeypatch.setattr(run_module, "run_slam_recording", _fail)
+    with pytest.raises(PipelineError, match=rf"^{log}: no scan has a return .*: nothing to map$"):
+        run_pipeline(log, tmp_path / "r", load_config(_config(tmp_path, {})))
+    assert not (tmp_path / "r").exists()
+
+
 # --- remap on damaged run folders --------------------------------------------------------------------------
 
 
@@ -272,6 +292,66 @@ def test_remap_with_non_finite_covariances(damaged, tmp_path, key: str, mode: st
     config.write_text(text.replace("pose_covariances: relative", f"pose_covariances: {mode}"))
     proc = _cli("remap", str(damaged), "--out", str(tmp_path / "m"))
     _one_line_error(proc, r"covariances: not every entry is finite")
+
+
+def _damage_scans(path: Path, how: str) -> None:
+    import numpy as np
+
+    if how == "truncated":
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) // 2])
+        return
+    with np.load(path) as z:
+        arrays = dict(z)
+    if how == "laser_nan":
+        arrays["laser_in_base_xytheta"][0] = np.nan
+    elif how == "offsets_beyond":
+        arrays["offsets"][-1] = 10**9
+    elif how == "offsets_decreasing":
+        arrays["offsets"][5] = arrays["offsets"][4] - 1
+    elif how == "fewer_stamps":
+        arrays["stamps_ns"] = arrays["stamps_ns"][:-50]
+    elif how == "negative_range":
+        arrays["ranges_m"][7] = -1.0
+    np.savez(path, **arrays)
+
+
+@pytest.mark.parametrize(
+    ("how", "pattern"),
+    [
+        ("truncated", r"not a scans archive \(File is not a zip file\)"),
+        ("laser_nan", r"laser_in_base_xytheta is not a finite x, y, theta"),
+        ("offsets_beyond", r"offsets do not split its \d+ beams"),
+        ("offsets_decreasing", r"offsets do not split"),
+        ("fewer_stamps", r"\d+ scans but \d+ stamps"),
+        ("negative_range", r"negative ranges \(beam 7\)"),
+    ],
+)
+def test_remap_on_damaged_scans_is_one_line(damaged, tmp_path, how: str, pattern: str) -> None:
+    _damage_scans(damaged / "scans.npz", how)
+    proc = _cli("remap", str(damaged), "--out", str(tmp_path / "m"))
+    _one_line_error(proc, rf"{damaged}/scans\.npz: .*{pattern}")
+    assert not (tmp_path / "m").exists()
+
+
+def test_overwrite_refuses_to_delete_the_input_or_the_run_it_remaps(small_log, damaged, tmp_path) -> None:
+    """--out naming the folder that holds the input (or the run folder being remapped, or a folder of
+    other files) with --overwrite is a one-line error before any work, and deletes nothing."""
+    data = tmp_path / "data"
+    data.mkdir()
+    log = data / small_log.name
+    shutil.copy(small_log, log)
+    proc = _cli("run", str(log), "--out", str(data), "--overwrite")
+    _one_line_error(proc, rf"{data}: holds {log}, which this command reads; --overwrite would delete it")
+    proc = _cli("remap", str(damaged), "--out", str(damaged), "--overwrite")
+    _one_line_error(proc, rf"{damaged}: holds {damaged}, which this command reads")
+    proc = _cli("remap", str(damaged), "--out", str(damaged.parent), "--overwrite")
+    _one_line_error(proc, rf"{damaged.parent}: holds {damaged}, which this command reads")
+    (data / "notes.txt").write_text("mine")
+    proc = _cli("run", str(small_log), "--out", str(data), "--overwrite")
+    _one_line_error(proc, rf"{data}: exists and is not a run folder \(no summary\.json\)")
+    assert sorted(p.name for p in data.iterdir()) == sorted([log.name, "notes.txt"])
+    assert (damaged / "scans.npz").is_file() and (damaged / "summary.json").is_file()
 
 
 # --- Ctrl-C under a local Dask cluster ---------------------------------------------------------------------

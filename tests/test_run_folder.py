@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from pipeline.errors import PipelineError
-from pipeline.run_folder import read_summary, staged_run_folder, write_summary
+from pipeline.run_folder import check_output_dir, read_summary, staged_run_folder, write_summary
 
 
 def test_complete_run_is_renamed_into_place(tmp_path) -> None:
@@ -41,6 +41,7 @@ def test_existing_folder_needs_overwrite(tmp_path) -> None:
     out = tmp_path / "run"
     out.mkdir()
     (out / "old.txt").write_text("old")
+    write_summary(out, {})  # an earlier run
     with pytest.raises(PipelineError, match="already exists"), staged_run_folder(out):
         pass
     assert (out / "old.txt").exists()
@@ -56,3 +57,27 @@ def test_existing_folder_needs_overwrite(tmp_path) -> None:
 def test_read_summary_of_incomplete_folder(tmp_path) -> None:
     with pytest.raises(PipelineError, match="not a complete run folder"):
         read_summary(tmp_path)
+
+
+def test_overwrite_never_deletes_what_the_run_reads_nor_other_files(tmp_path) -> None:
+    """--overwrite replaces a run folder or an empty one; a folder that is or holds the input (or the run
+    folder being remapped), or that holds other files, is refused before any work, and kept."""
+    data = tmp_path / "data"
+    data.mkdir()
+    log = data / "in.clf"
+    log.write_text("FLASER ...")
+    for out, read in ((data, log), (data, data), (tmp_path, data)):
+        with pytest.raises(PipelineError, match="which this command reads"):
+            check_output_dir(out, overwrite=True, reads=[None, read])
+    (data / "notes.txt").write_text("mine")
+    with pytest.raises(PipelineError, match="not a run folder"), staged_run_folder(data, overwrite=True):
+        pass
+    assert sorted(p.name for p in data.iterdir()) == ["in.clf", "notes.txt"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    check_output_dir(empty, overwrite=True, reads=[log])
+    run = tmp_path / "run"
+    run.mkdir()
+    write_summary(run, {})
+    check_output_dir(run, overwrite=True, reads=[log, data])
+    check_output_dir(data / "remap", overwrite=True, reads=[data])  # a new folder inside what it reads
