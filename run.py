@@ -53,9 +53,27 @@ class _VersionAction(argparse.Action):
         parser.exit()
 
 
+#: The largest seed numpy's generators take.
+MAX_SEED = 2**32 - 1
+#: The most hold-out seeds one command evaluates (each maps the recording again: seconds to minutes).
+MAX_SEEDS = 1000
+
+
+def seed_int(text: str) -> int:
+    """One random seed, 0 to :data:`MAX_SEED`; argparse.ArgumentTypeError otherwise (a usage error)."""
+    try:
+        seed = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not an integer seed") from None
+    if not 0 <= seed <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"'{text}': a seed lies between 0 and {MAX_SEED} (2**32 - 1)")
+    return seed
+
+
 def seed_list(text: str) -> list[int]:
-    """The hold-out seeds one ``--seed`` word names: ``3``, ``1,2``, ``0-4`` or a mix (``0-2,7``);
-    argparse.ArgumentTypeError otherwise (a usage error, exit 2)."""
+    """The hold-out seeds one ``--seed`` word names: ``3``, ``1,2``, ``0-4`` or a mix (``0-2,7``), each at
+    most :data:`MAX_SEED`, at most :data:`MAX_SEEDS` of them; argparse.ArgumentTypeError otherwise (a usage
+    error, exit 2)."""
     seeds: list[int] = []
     for part in text.split(","):
         lo, sep, hi = part.strip().partition("-")
@@ -67,6 +85,12 @@ def seed_list(text: str) -> list[int]:
             ) from None
         if first < 0 or last < first:
             raise argparse.ArgumentTypeError(f"'{text}': seeds are integers >= 0, ranges run upwards")
+        if last > MAX_SEED:
+            raise argparse.ArgumentTypeError(f"'{text}': a seed lies between 0 and {MAX_SEED} (2**32 - 1)")
+        if len(seeds) + last - first + 1 > MAX_SEEDS:
+            raise argparse.ArgumentTypeError(
+                f"'{text}': {len(seeds) + last - first + 1} seeds; at most {MAX_SEEDS} in one command"
+            )
         seeds.extend(range(first, last + 1))
     return seeds
 
@@ -84,6 +108,8 @@ class _SeedsAction(argparse.Action):
     ) -> None:
         seeds = list(getattr(namespace, self.dest) or [])
         seeds.extend(s for s in values if s not in seeds)
+        if len(seeds) > MAX_SEEDS:
+            parser.error(f"argument --seed: {len(seeds)} seeds; at most {MAX_SEEDS} in one command")
         setattr(namespace, self.dest, seeds)
 
 
@@ -182,7 +208,7 @@ def build_parser() -> argparse.ArgumentParser:
         "demo", parents=quiet, help="simulate the loop world, run the full pipeline on it, print a summary"
     )
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="run folder (default: out/demo)")
-    p.add_argument("--seed", type=int, default=0, help="simulation seed (default: 0)")
+    p.add_argument("--seed", type=seed_int, default=0, help="simulation seed (default: 0)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
     _add_scheduler(p)
     _add_json(p)
@@ -234,7 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("world", choices=["street", "two-platform", "loop"], help="simulated world")
     p.add_argument("--out", type=Path, required=True, help="bag path: .bag (ROS1), .mcap or a folder (ROS2)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--seed", type=seed_int, default=0, help="random seed (default: 0)")
 
     p = sub.add_parser("convert", parents=quiet, help="CARMEN log (or any readable recording) to a ROS bag")
     p.add_argument("input", type=Path, help="recording to read")
@@ -286,7 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
         "off by 2-20 m and up to 90 deg, with the information of real ones) before the final optimisation; "
         "the report says how many the back end kept",
     )
-    q.add_argument("--seed", type=int, default=0, help="seed of the injected closures (default 0)")
+    q.add_argument("--seed", type=seed_int, default=0, help="seed of the injected closures (default 0)")
     _add_json(q)
     q = ev.add_parser(
         "suite",

@@ -24,7 +24,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -258,6 +259,21 @@ def _load_result(path: Path, key: str, what: str) -> dict[str, Any]:
     return result
 
 
+@contextmanager
+def _saved_json(path: Path | None, what: str) -> Iterator[None]:
+    """Within the block, a saved ``--json`` result (``path``; None: a fresh run, errors pass) whose values
+    have the wrong shape to render is a one-line PipelineError naming the file, not a traceback."""
+    try:
+        yield
+    except (KeyError, TypeError, AttributeError, ValueError, IndexError) as exc:
+        if path is None:
+            raise
+        detail = f"{type(exc).__name__}: {exc}"
+        raise PipelineError(
+            f"{path}: not the JSON of {what} (a value has the wrong shape: {detail})"
+        ) from None
+
+
 def _write_markdown(path: Path | None, text: str | None, emit_json: bool) -> None:
     """Write the page ``text`` to ``path`` (nothing when either is None); ``wrote PATH`` unless JSON."""
     if path is None or text is None:
@@ -292,7 +308,16 @@ def _evaluate_suite(args: argparse.Namespace, emit_json: EmitJson, progress: Any
     _check_markdown_target(args.markdown)
     if args.from_json is not None:
         result = _load_result(args.from_json, "datasets", "evaluate suite --json")
-        result["table"] = [table_row(r) for r in result["datasets"]]
+        rows = result["datasets"]
+        if not isinstance(rows, list) or not all(
+            isinstance(r, dict) and isinstance(r.get("name"), str) for r in rows
+        ):
+            raise PipelineError(
+                f"{args.from_json}: not the JSON of evaluate suite --json ('datasets' is not a list of "
+                "recordings, each with its 'name')"
+            )
+        with _saved_json(args.from_json, "evaluate suite --json"):
+            result["table"] = [table_row(r) for r in rows]
     else:
         result = evaluate_suite(
             data_dir=args.data,
@@ -309,7 +334,8 @@ def _evaluate_suite(args: argparse.Namespace, emit_json: EmitJson, progress: Any
     if args.markdown is not None:
         from pipeline.results_markdown import suite_markdown
 
-        page = suite_markdown(result, _rendered(args), _source(args))
+        with _saved_json(args.from_json, "evaluate suite --json"):
+            page = suite_markdown(result, _rendered(args), _source(args))
     if args.json:
         emit_json({k: v for k, v in result.items() if k != "table"})
     else:
@@ -339,7 +365,8 @@ def cmd_bench(args: argparse.Namespace, emit_json: EmitJson) -> int:
     if args.markdown is not None:
         from pipeline.results_markdown import bench_markdown
 
-        page = bench_markdown(result, _rendered(args), _source(args))
+        with _saved_json(args.from_json, "bench --json"):
+            page = bench_markdown(result, _rendered(args), _source(args))
     shown = result if args.json else {k: v for k, v in result.items() if k != "provenance"}
     _report(shown, args, emit_json, "benchmarks")
     _write_markdown(args.markdown, page, args.json)

@@ -109,8 +109,10 @@ def test_hold_out_seeds_as_words_lists_ranges_or_repeated_flags(command: list[st
         assert args.seed == [0, 1] and str(args.input) == "x.log"
 
 
-@pytest.mark.parametrize("word", ["x", "3-1", "1,", "-1"])
+@pytest.mark.parametrize("word", ["x", "3-1", "1,", "-1", "0-100000000", "99999999999999999999999"])
 def test_a_bad_seed_is_a_usage_error_naming_it(word: str) -> None:
+    """Including ranges too long to run (a hundred million hold-out maps) and seeds numpy's generators
+    cannot take: said at once, not after minutes of work (or gigabytes of a list of seeds)."""
     result = subprocess.run(
         [sys.executable, "run.py", "evaluate", "map", "x.log", f"--seed={word}"],
         cwd=REPO,
@@ -119,6 +121,22 @@ def test_a_bad_seed_is_a_usage_error_naming_it(word: str) -> None:
     )
     assert result.returncode == 2
     assert f"'{word}'" in result.stderr and "--seed" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["evaluate", "map", "x.log", "--seed", "0-999", "--seed", "1000-1001"], "1002 seeds; at most 1000"),
+        (["simulate", "loop", "--out", "x.mcap", "--seed", "-1"], "'-1': a seed lies between 0 and"),
+        (["demo", "--seed", "4294967296"], "'4294967296': a seed lies between 0 and"),
+        (["evaluate", "slam", "x.log", "--relations", "r", "--seed", "y"], "'y' is not an integer seed"),
+    ],
+)
+def test_every_seed_option_is_checked_as_a_usage_error(args: list[str], message: str) -> None:
+    result = subprocess.run(
+        [sys.executable, "run.py", *args], cwd=REPO, capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 2 and message in result.stderr and "--seed" in result.stderr
 
 
 def test_version_is_the_one_of_pyproject() -> None:

@@ -266,6 +266,29 @@ def fake_bench() -> dict:
     }
 
 
+@pytest.mark.parametrize(
+    ("saved", "pattern"),
+    [
+        ({"datasets": "x"}, r"'datasets' is not a list of recordings"),
+        ({"datasets": [{"name": 3}]}, r"'datasets' is not a list of recordings"),
+        ({"datasets": [{"name": "a", "slam": 3}]}, r"a value has the wrong shape: AttributeError"),
+        ({"datasets": [{"name": "a", "slam": {"relations": "x"}}]}, r"wrong shape: TypeError"),
+    ],
+)
+def test_a_saved_suite_json_of_the_wrong_shape_is_one_line(tmp_path, saved, pattern: str) -> None:
+    """``--from-json`` reads a file the user names: values of the wrong shape are a one-line error naming
+    it, and no page is written."""
+    path = tmp_path / "suite.json"
+    path.write_text(json.dumps(saved))
+    page = tmp_path / "p.md"
+    done = run_cli("evaluate", "suite", "--from-json", str(path), "--markdown", str(page))
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: {path}: not the JSON of evaluate suite --json (")
+    assert re.search(pattern, lines[0]), lines[0]
+    assert not page.exists()
+
+
 def test_bench_page_headline_targets_slam_runs_and_every_figure() -> None:
     result = fake_bench()
     page = bench_markdown(result)
