@@ -221,7 +221,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--scan-topic",
         help="LaserScan / PointCloud2 topic (default: auto-detect); 'all': every LaserScan topic",
     )
-    p.add_argument("--odom-topic", help="nav_msgs/Odometry topic (default: auto-detect)")
+    p.add_argument(
+        "--odom-topic", help="nav_msgs/Odometry topic (default: auto-detect; none: run on the scans alone)"
+    )
     p.add_argument("--resolution", type=float, help="map cell size in metres")
     p.add_argument("--mapper", choices=["gppol", "gpfol"], help="GP with uncertain (gppol) or exact inputs")
     p.add_argument(
@@ -266,7 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", type=Path, help="recording to read")
     p.add_argument("output", type=Path, help=".bag (ROS1), .mcap or a folder (ROS2)")
     p.add_argument("--scan-topic", help="scan topic of a bag input ('all': every one, 'none': odometry only)")
-    p.add_argument("--odom-topic", help="odometry topic of the input, if a bag")
+    p.add_argument("--odom-topic", help="odometry topic of the input, if a bag (none: without odometry)")
 
     p = sub.add_parser(
         "evaluate",

@@ -36,7 +36,9 @@ class InputConfig(BaseModel):
         description="LaserScan or PointCloud2 topic; null auto-detects (exactly one candidate), "
         "'all' reads every LaserScan topic (several platforms), 'none' reads a bag without scans",
     )
-    odom_topic: str | None = Field(None, description="nav_msgs/Odometry topic; null auto-detects")
+    odom_topic: str | None = Field(
+        None, description="nav_msgs/Odometry topic; null auto-detects; 'none' reads no odometry"
+    )
     reference_topic: str | None = Field(
         None, description="ground-truth pose topic; null auto-detects a topic named '*ground_truth*'"
     )

@@ -21,15 +21,21 @@ truth). ``scan_topic="all"`` reads every LaserScan topic (several platforms, ``S
 topic names); then the reference of ``/ns/scan`` comes from ``/ns/...ground_truth...`` or else the single
 global ground-truth topic, and per-namespace odometry goes to ``meta["odometry_by_source"]``.
 ``scan_topic="none"`` reads a bag without scans (e.g. odometry only); by default a bag without a scan topic
-is a :class:`~datasets.errors.TopicError` that lists its topics.
+is a :class:`~datasets.errors.TopicError` that lists its topics. ``odom_topic="none"`` reads it without
+odometry.
 
 Bad input (SPEC section 8) raises one line naming the file: negative ranges, empty scans and header stamps
 going backwards within a topic name the topic and the message; so do non-finite beam angles or range limits,
+LaserScan fields that disagree (a zero increment, ``angle_min + (n - 1) * angle_increment`` not at
+``angle_max`` within :data:`ANGLE_MAX_TOLERANCE_INCREMENTS` increments, a fan wider than a full turn),
 non-finite poses or covariances, PointCloud2 layouts that do not fit their data, and tf rotations that are
 not unit quaternions (those within :data:`QUATERNION_NORM_TOLERANCE` of unit are normalised).
 ``inf`` and ``NaN`` ranges are accepted: REP 117 uses them for "no return" (and ``-inf`` for "too close");
 a reading at or beyond the message's ``range_max`` is none either. ``meta["no_return"]`` says so (``rule``,
 ``range_m``: the largest declared ``range_max``), as the CARMEN reader's does.
+Odometry that no scan lies within (its header stamps wholly before or after the scans', or all zero) is an
+error naming both time spans; ``meta["scans_outside_odometry"]`` counts, per odometry topic, the scans
+outside its span (slack: :data:`ODOMETRY_SPAN_SLACK_NS` or half the median odometry period).
 """
 
 from __future__ import annotations
@@ -65,9 +71,20 @@ SCAN_POSE_SUFFIX = "_pose"  # scan poses of scan topic T are on T + "_pose"
 
 ALL_TOPICS = "all"
 NO_SCANS = "none"
+NO_ODOMETRY = "none"  # odom_topic "none": read the bag without odometry
+
+#: Scans this much beyond the odometry's time span still count as within it (at least; half the median
+#: odometry period when that is longer).
+ODOMETRY_SPAN_SLACK_NS = 100_000_000
 
 #: A tf rotation whose quaternion norm is within this of 1 is normalised; any other is refused.
 QUATERNION_NORM_TOLERANCE = 1e-2
+
+#: A LaserScan's ``angle_min + (n - 1) * angle_increment`` may miss its ``angle_max`` by this many increments
+#: (drivers differ by one step: n beams over ``angle_max - angle_min`` in n or n - 1 steps) ...
+ANGLE_MAX_TOLERANCE_INCREMENTS = 1.5
+#: ... plus this many radians (float32 rounding of the three fields).
+ANGLE_MAX_TOLERANCE_RAD = 1e-4
 
 # sensor_msgs/PointField datatypes
 _POINT_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -106,6 +123,7 @@ class _BagReading:
         self.cfg = cfg
         self.path = bag.path
         self.clamped: dict[str, int] = {}  # pose topic -> scans outside its time span (end pose used)
+        self.outside_odometry: dict[str, int] = {}  # odometry topic -> scans outside its time span
 
     # -- topic choice ---------------------------------------------------------------------------------
 
@@ -164,6 +182,8 @@ class _BagReading:
         return candidates[0] if candidates else None
 
     def odom_topic(self, ns: str) -> str | None:
+        if self.cfg.odom_topic == NO_ODOMETRY:
+            return None
         if self.cfg.odom_topic is not None:
             return self._require(self.cfg.odom_topic, (ODOM_TYPE,), "odometry")
         cands = [t for t in self._of_types([ODOM_TYPE]) if "ground_truth" not in t]
@@ -213,6 +233,7 @@ class _BagReading:
                     )
                 if local:
                     by_source[topic] = self._read_poses(local[0])
+                    self._check_odometry_span(by_source[topic], local[0], scans, topics.index(topic))
                     meta.setdefault("odom_topics", {})[topic] = local[0]
             glob = [
                 t
@@ -225,7 +246,9 @@ class _BagReading:
             odom_topic = self.odom_topic(namespaces[0] if namespaces else "")
         if odom_topic is not None:
             odometry = self._read_poses(odom_topic)
+            self._check_odometry_span(odometry, odom_topic, scans, None)
         meta["odom_topic"] = odom_topic
+        meta["scans_outside_odometry"] = self.outside_odometry
 
         # reference and scan poses, at the scan stamps
         reference = scan_poses = None
@@ -283,6 +306,7 @@ class _BagReading:
         frames: list[str] = []
         source: list[int] = []
         angle_cache: dict[tuple[float, float, int], NDArray] = {}
+        fans_checked: set[tuple[float, float, float, int]] = set()  # (min, max, increment, beams)
         for k, topic in enumerate(topics):
             where = f"{self.path}: topic {shown_name(topic)}"
             previous = None
@@ -310,6 +334,12 @@ class _BagReading:
                             f"angles (angle_min {key[0]!r}, angle_increment {key[1]!r}, {key[2]} beams)"
                         )
                     angle_cache[key] = beams
+                fan = (key[0], float(msg.angle_max), key[1], key[2])
+                if fan not in fans_checked:
+                    problem = _beam_fan_problem(*fan)
+                    if problem:
+                        raise DatasetError(f"{where}: message {i} (stamp {stamp} ns) {problem}")
+                    fans_checked.add(fan)
                 limits = (float(msg.range_min), float(msg.range_max))
                 if not (np.isfinite(limits).all() and 0.0 <= limits[0] < limits[1]):
                     raise DatasetError(
@@ -402,6 +432,35 @@ class _BagReading:
         self.clamped[topic] = outside
         return traj.interpolate(stamps)
 
+    def _check_odometry_span(
+        self, odometry: Trajectory, topic: str, scans: ScanSequence | None, source: int | None
+    ) -> None:
+        """Count the scans (of ``source``, else all) outside the odometry's time span, beyond a slack of
+        :data:`ODOMETRY_SPAN_SLACK_NS` or half the median odometry period; refuse odometry no scan lies in.
+
+        Wheel poses are interpolated at the scan stamps downstream; outside the span that would be the end
+        pose, so odometry wholly before or after the scans (or with broken header stamps) would silently hand
+        every scan the same pose.
+        """
+        if scans is None or len(scans) == 0 or len(odometry) == 0:
+            return
+        stamps = scans.stamps_ns if source is None else scans.stamps_ns[scans.source_index == source]
+        if stamps.size == 0:
+            return
+        t = odometry.stamps_ns
+        slack = ODOMETRY_SPAN_SLACK_NS
+        if t.size > 1:
+            slack = max(slack, int(np.median(np.diff(t))) // 2)
+        inside = (stamps >= t[0] - slack) & (stamps <= t[-1] + slack)
+        self.outside_odometry[topic] = int(stamps.size - np.count_nonzero(inside))
+        if inside.any():
+            return
+        raise DatasetError(
+            f"{self.path}: odometry topic {shown_name(topic)} spans {_span_s(t)} but the scans span "
+            f"{_span_s(stamps)}: no scan lies within the odometry's time span; fix the header stamps, or "
+            f"pass --odom-topic {NO_ODOMETRY} to read the scans without odometry"
+        )
+
     def _per_scan_reference(
         self, scans: ScanSequence, topics: list[str], namespaces: list[str], meta: dict
     ) -> Trajectory | None:
@@ -492,6 +551,45 @@ class _BagReading:
                         raise DatasetError(error)
             out.append(None if m is None else np.array([m[0, 3], m[1, 3], np.arctan2(m[1, 0], m[0, 0])]))
         return out
+
+
+def _span_s(stamps_ns: NDArray[np.int64]) -> str:
+    """``[first, last] s`` of sorted stamps (seconds, 3 decimals) and the length, for an error message."""
+    a, b = int(stamps_ns[0]), int(stamps_ns[-1])
+    return f"[{a / 1e9:.3f}, {b / 1e9:.3f}] s ({(b - a) / 1e9:.3f} s)"
+
+
+def _beam_fan_problem(angle_min: float, angle_max: float, angle_increment: float, beams: int) -> str | None:
+    """What is wrong with a LaserScan's beam fan (a phrase for an error message), or None when it is sound.
+
+    ``angle_min`` and ``angle_increment`` (already known to give finite angles) build the beams; they must
+    agree with ``angle_max``: ``angle_min + (beams - 1) * angle_increment`` within
+    :data:`ANGLE_MAX_TOLERANCE_INCREMENTS` increments plus :data:`ANGLE_MAX_TOLERANCE_RAD` of it (so a zero,
+    vanishing or wrongly signed increment, or ranges of another length than the fan, are refused), and the
+    fan may be at most one increment wider than a full turn. Reversed scans (``angle_min > angle_max``, a
+    negative increment) are sound. One beam has no fan: only its ``angle_min`` counts.
+    """
+    if beams < 2:
+        return None
+    fields = (
+        f"(angle_min {angle_min!r}, angle_max {angle_max!r}, angle_increment {angle_increment!r}, "
+        f"{beams} beams)"
+    )
+    if not np.isfinite(angle_max):
+        return f"has a non-finite angle_max {fields}"
+    inc = float(np.float32(angle_increment))
+    if inc == 0.0:
+        return f"has a zero angle_increment {fields}"
+    a0, a1 = float(np.float32(angle_min)), float(np.float32(angle_max))
+    end = a0 + (beams - 1) * inc
+    if abs(end - a1) > ANGLE_MAX_TOLERANCE_INCREMENTS * abs(inc) + ANGLE_MAX_TOLERANCE_RAD:
+        return (
+            f"has beam angles that do not end at angle_max: angle_min + {beams - 1} * angle_increment = "
+            f"{end:.6g} rad, angle_max {a1:.6g} rad {fields}"
+        )
+    if abs(end - a0) > 2.0 * np.pi + abs(inc) + ANGLE_MAX_TOLERANCE_RAD:
+        return f"has a beam fan of {abs(end - a0):.6g} rad, more than a full turn {fields}"
+    return None
 
 
 def _transform_matrix(tf: object, where: str) -> NDArray:
