@@ -381,3 +381,29 @@ def test_dense_scans_without_wheels_register_thinned_like_with_wheels(demo_scans
     )
     assert np.hypot(steps[:, 0], steps[:, 1]).max() < 0.015
     assert np.degrees(np.abs(steps[:, 2])).max() < 0.4
+
+
+def test_scans_outside_the_odometry_span_have_no_wheel_pose() -> None:
+    """Odometry that covers only the middle of the recording: the scans before its first stamp and after
+    its last (beyond the slack) get no wheel pose, not its end poses, so their steps are registered
+    without wheels, and the odometry still follows the scans there."""
+    from datasets.types import Trajectory
+
+    rec = make_world("loop", 0).recording
+    sc = rec.scans
+    odo = rec.odometry
+    keep = (odo.stamps_ns >= sc.stamps_ns[100]) & (odo.stamps_ns <= sc.stamps_ns[300])
+    middle = Trajectory(odo.stamps_ns[keep], odo.poses_xytheta[keep], odo.frame_id)
+    wheel = wheel_poses_at_scans(middle, sc.stamps_ns)
+    assert np.all(np.isfinite(wheel[100:301]))
+    assert np.all(np.isnan(wheel[:98])) and np.all(np.isnan(wheel[303:]))  # the next scan is in the slack
+    pts = scans_points_base(sc, rec.laser_in_base_xytheta, OdometryConfig())
+    result = run_odometry(pts, wheel, OdometryConfig())
+    assert result.status_counts()["matched"] == len(sc) - 1
+    truth = rec.reference.poses_xytheta
+    late = slice(320, 400)  # registered without wheels, from a constant-velocity guess
+    steps = se2.between(
+        se2.between(truth[late][:-1], truth[late][1:]),
+        se2.between(result.poses_xytheta[late][:-1], result.poses_xytheta[late][1:]),
+    )
+    assert np.hypot(steps[:, 0], steps[:, 1]).max() < 0.05
