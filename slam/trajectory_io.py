@@ -110,8 +110,13 @@ def write_tum(path: str | Path, stamps_ns: NDArray[np.int64], poses_xytheta: Flo
     write_text_atomic(path, "\n".join(lines) + "\n")
 
 
+#: A TUM quaternion whose norm is within this of 1 is read (printed with few decimals); others are refused.
+QUATERNION_NORM_TOLERANCE = 1e-2
+
+
 def read_tum(path: str | Path) -> tuple[NDArray[np.int64], FloatArray]:
-    """(N,) stamps_ns and (N, 3) poses (x, y, yaw) of a TUM file (the yaw of the quaternion)."""
+    """(N,) stamps_ns and (N, 3) poses (x, y, yaw) of a TUM file (the yaw of the quaternion, which must be
+    a unit one within :data:`QUATERNION_NORM_TOLERANCE`)."""
     path = Path(path)
     stamps: list[int] = []
     poses: list[tuple[float, float, float]] = []
@@ -137,6 +142,12 @@ def read_tum(path: str | Path) -> tuple[NDArray[np.int64], FloatArray]:
             yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
         if not np.isfinite(yaw):
             raise TrajectoryFormatError(f"{path}: line {number}: quaternion too large for a yaw angle")
+        norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+            raise TrajectoryFormatError(
+                f"{path}: line {number}: not a unit quaternion (qx qy qz qw = {qx:g} {qy:g} {qz:g} {qw:g}, "
+                f"norm {norm:.6g})"
+            )
         stamps.append(t)
         poses.append((x, y, float(yaw)))
     return np.asarray(stamps, dtype=np.int64), np.asarray(poses, dtype=np.float64).reshape(-1, 3)

@@ -232,6 +232,21 @@ def test_tum_huge_quaternion(tmp_path: Path) -> None:
     _one_line(err, path, "line 1: quaternion too large")
 
 
+@pytest.mark.parametrize("quaternion", ["0 0 0 0", "0 0 0.5 0.5", "0 0 2 0"])
+def test_tum_quaternion_that_is_not_a_unit_one(tmp_path: Path, quaternion: str) -> None:
+    """A zero quaternion read as yaw 0 (a remap with such a file moved the map); a half or doubled one has
+    a yaw but is no rotation."""
+    path = _write(tmp_path / "q.tum", f"1.0 0 0 0 0 0 0 1\n2.0 1 0 0 {quaternion}\n")
+    with pytest.raises(TrajectoryFormatError) as err:
+        read_tum(path)
+    _one_line(err, path, "line 2: not a unit quaternion")
+
+
+def test_tum_quaternion_printed_with_few_decimals_is_read(tmp_path: Path) -> None:
+    path = _write(tmp_path / "q.tum", "1.0 0 0 0 0 0 0.7071 0.7071\n")
+    assert read_tum(path)[1][0, 2] == pytest.approx(np.pi / 2, abs=1e-4)
+
+
 # ---------------------------------------------------------------------------------------------- g2o
 
 
