@@ -275,6 +275,20 @@ def _from_covariance_archive(path: Path, read: Callable[[Any], Any]) -> Any:
         raise TrajectoryFormatError(f"{path}: not a covariance archive ({exc})") from None
 
 
+#: Relative tolerance of :func:`_not_covariances` (float rounding of a stored covariance).
+COVARIANCE_TOLERANCE = 1e-6
+
+
+def _not_covariances(cov: NDArray[np.float64]) -> int | None:
+    """The index of the first (3, 3) matrix of ``cov`` (N, 3, 3) that is not symmetric positive
+    semi-definite (to :data:`COVARIANCE_TOLERANCE` of its largest entry), or None."""
+    scale = np.abs(cov).max(axis=(1, 2)) + 1e-300
+    asym = np.abs(cov - np.transpose(cov, (0, 2, 1))).max(axis=(1, 2)) > COVARIANCE_TOLERANCE * scale
+    low = np.linalg.eigvalsh(0.5 * (cov + np.transpose(cov, (0, 2, 1))))[:, 0] < -COVARIANCE_TOLERANCE * scale
+    bad = np.flatnonzero(asym | low)
+    return int(bad[0]) if bad.size else None
+
+
 def read_keyframe_indices(path: Path) -> NDArray[np.int64]:
     """The scan index of every keyframe (``indices``, (K,)) of a run's ``covariances.npz``."""
     indices = _from_covariance_archive(path, lambda z: np.asarray(z["indices"]))
@@ -293,6 +307,9 @@ def covariances_at(
         raise PipelineError(f"covariances of shape {cov.shape} for {len(cov_stamps_ns)} stamps")
     if not np.isfinite(cov).all():
         raise PipelineError("covariances: not every entry is finite")
+    bad = _not_covariances(cov)
+    if bad is not None:
+        raise PipelineError(f"covariances: entry {bad} is not symmetric positive semi-definite")
     order = np.argsort(cov_stamps_ns, kind="stable")
     s = np.asarray(cov_stamps_ns, np.int64)[order]
     idx = np.searchsorted(s, np.asarray(stamps_ns, np.int64), side="right") - 1

@@ -294,6 +294,25 @@ def test_remap_with_non_finite_covariances(damaged, tmp_path, key: str, mode: st
     _one_line_error(proc, r"covariances: not every entry is finite")
 
 
+@pytest.mark.parametrize("damage", ["negated", "asymmetric"])
+def test_remap_with_covariances_that_are_none(damaged, tmp_path, damage: str) -> None:
+    """Negated (negative-definite) covariances gave GPPOL inputs of no spread and a placement layer of
+    zeros; an asymmetric matrix is no covariance either."""
+    import numpy as np
+
+    path = damaged / "trajectory" / "covariances.npz"
+    with np.load(path) as z:
+        arrays = dict(z)
+    key = "scan_relative_after"
+    if damage == "negated":
+        arrays[key] = -arrays[key]
+    else:
+        arrays[key][4, 0, 1] += 1.0
+    np.savez(path, **arrays)
+    proc = _cli("remap", str(damaged), "--out", str(tmp_path / "m"), "--recompute")
+    _one_line_error(proc, r"covariances: entry \d+ is not symmetric positive semi-definite")
+
+
 def _damage_scans(path: Path, how: str) -> None:
     import numpy as np
 
