@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from datasets.errors import DatasetError, shown
 from datasets.files import write_text_atomic
 from datasets.stamps import NS_PER_S, ns_to_decimal, stamp_field_ns
+from datasets.validate import MAX_COORDINATE_M
 
 FIELDS = "t1 t2 x y z roll pitch yaw"
 
@@ -102,6 +103,7 @@ def read_relations(path: str | Path) -> Relations:
             if not np.isfinite(value):
                 raise RelationsError(f"{path}: line {number}: non-finite value {shown(tok)}")
             row.append(value)
+        _check_relation(path, number, t1, t2, row)
         s1.append(t1)
         s2.append(t2)
         values.append(row)
@@ -109,6 +111,25 @@ def read_relations(path: str | Path) -> Relations:
         raise RelationsError(f"{path}: no relations ({FIELDS} per line)")
     v = np.array(values, dtype=np.float64)
     return Relations(np.array(s1, np.int64), np.array(s2, np.int64), v[:, :3], v[:, 3:])
+
+
+#: |roll|, |pitch|, |yaw| of a relation beyond this is damage (the benchmark's lie within +-2 pi).
+MAX_RELATION_ANGLE_RAD = 1e3
+
+
+def _check_relation(path: Path, number: int, t1: int, t2: int, row: list[float]) -> None:
+    """RelationsError naming the line for a relation no benchmark holds: a translation beyond
+    :data:`~datasets.validate.MAX_COORDINATE_M`, an angle beyond :data:`MAX_RELATION_ANGLE_RAD`, or a scan
+    related to itself by a motion (the same stamp twice with a non-zero relative pose)."""
+    xyz, rpy = row[:3], row[3:]
+    if max(abs(v) for v in xyz) > MAX_COORDINATE_M:
+        raise RelationsError(f"{path}: line {number}: translation beyond {MAX_COORDINATE_M:g} m")
+    if max(abs(v) for v in rpy) > MAX_RELATION_ANGLE_RAD:
+        raise RelationsError(f"{path}: line {number}: angle beyond {MAX_RELATION_ANGLE_RAD:g} rad")
+    if t1 == t2 and any(v != 0.0 for v in row):
+        raise RelationsError(
+            f"{path}: line {number}: relates a scan to itself (both stamps {_stamp_text(t1)}) by a motion"
+        )
 
 
 def _stamp(path: Path, number: int, token: str) -> int:

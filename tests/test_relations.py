@@ -64,6 +64,12 @@ BAD_LINES = {
     "inf": ("1.0 2.0 0 0 0 0 0 -inf", "line 2: non-finite value '-inf'"),
     "bad stamp": ("1.0 2.0.1 0 0 0 0 0 0", "line 2: timestamp '2.0.1' is not a decimal number"),
     "nan stamp": ("nan 2.0 0 0 0 0 0 0", "line 2: timestamp 'nan' is not a decimal number"),
+    "huge yaw": ("1.0 2.0 0 0 0 0 0 1e300", "line 2: angle beyond 1000 rad"),
+    "huge translation": ("1.0 2.0 -3e7 0 0 0 0 0", "line 2: translation beyond 1e+07 m"),
+    "itself by a motion": (
+        "1.5 1.5 0.2 0 0 0 0 0.1",
+        "line 2: relates a scan to itself (both stamps 1.5) by a motion",
+    ),
 }
 
 
