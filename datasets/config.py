@@ -71,4 +71,9 @@ class InputConfig(BaseModel):
         lo, hi = self.cloud_height_band_m
         if not lo < hi:
             raise ValueError(f"cloud_height_band_m must be (low, high) with low < high, got {lo}, {hi}")
+        if not self.carmen_range_min_m < self.carmen_range_max_m:
+            raise ValueError(
+                f"carmen_range_min_m ({self.carmen_range_min_m:g}) must be below carmen_range_max_m "
+                f"({self.carmen_range_max_m:g})"
+            )
         return self

@@ -44,6 +44,10 @@ def test_yaml_round_trip(tmp_path) -> None:
             "mapping:\n  gppol:\n    kernel: nn\n    expectation: girard\n",
             r"'girard' is the SE kernel's closed form",
         ),
+        (
+            "input:\n  carmen_range_max_m: 0.01\n  carmen_range_min_m: 5\n",
+            r"carmen_range_min_m \(5\) must be below carmen_range_max_m \(0\.01\)",
+        ),
     ],
     ids=[
         "unknown-key",
@@ -54,6 +58,7 @@ def test_yaml_round_trip(tmp_path) -> None:
         "moved-key",
         "moved-nested-key",
         "girard-needs-se",
+        "carmen-range-limits-reversed",
     ],
 )
 def test_bad_config_is_rejected_with_one_line(tmp_path, text: str, message: str) -> None:
