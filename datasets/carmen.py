@@ -47,6 +47,11 @@ monotone in real logs, so the rule is:
   records are re-stamped between their neighbours in line order); ``meta["restamped"]`` counts them
   (intel.clf: 787 of 13,631 scans, 1,250 of 26,915 ODOM records). A corrected log whose stamps cannot be
   put in order within the usable years is stamped by line order (``meta["stamps_by_line_order"]``).
+- finally, when a stamp of any kind is negative (re-stamping extrapolates the records before the first
+  kept stamp: ``orebro-corrected.log`` logs every scan at 0 s and gets -236 ns .. 0; a raw log may log
+  negative stamps), every kind is shifted by one whole number of seconds so that the earliest stamp lies
+  in [0, 1 s): ROS time cannot be negative and such a clock offset carries no information; scans and
+  odometry keep their relative timing. ``meta["stamp_shift_ns"]`` holds the shift (0 for most logs).
 
 To find the scans of a corrected keyframe log in its raw log use :func:`match_keyframe_scans` (or
 :func:`match_scans` for the indices alone; both in :mod:`datasets.keyframe_match`, re-exported here), not
@@ -59,7 +64,8 @@ returned as ``odometry`` (``meta["odometry_is_corrected"]`` says so).
 
 Damaged values are a CarmenError naming the line and field, never a warning or an overflow further on:
 non-finite numbers; ranges beyond float32; pose coordinates beyond ``datasets.validate.MAX_COORDINATE_M``;
-headings beyond 1e6 rad; ROBOTLASER1 start angles or resolutions beyond 1e3 rad, and maximum ranges beyond
+headings beyond 1e6 rad; ROBOTLASER1 start angles or resolutions beyond 1e3 rad, resolutions not above 0,
+and maximum ranges beyond
 float32 or not above ``InputConfig.carmen_range_min_m``; ipc stamps beyond the years 1740-2200
 (``datasets.validate.MAX_STAMP_NS``; logger stamps only need to fit int64 nanoseconds).
 """
@@ -229,6 +235,24 @@ def read_carmen(path: str | Path, cfg: InputConfig | None = None) -> Recording:
             "odometry_line_numbers": odom["line_numbers"],
         }
 
+    # ROS time cannot be negative: every kind moved by one shift (scans and odometry stay on one clock)
+    odom_stamps = odometry.stamps_ns if odometry is not None else None
+    was_line_order = line_order
+    scan_stamps, odom_stamps, shift_ns, line_order = _non_negative(
+        path,
+        laser["line_numbers"],
+        scan_stamps,
+        odom_meta.get("odometry_line_numbers"),
+        odom_stamps,
+        corrected,
+        line_order,
+    )
+    if line_order and not was_line_order:  # no shift fits the years: stamped by line order instead
+        scan_restamped = np.ones(len(scan_stamps), dtype=bool)
+        odom_restamped = 0 if odom_stamps is None else len(odom_stamps)
+    if odometry is not None and odom_stamps is not odometry.stamps_ns:
+        odometry = Trajectory(odom_stamps, odometry.poses_xytheta, frame_id="odom")
+
     params = _params(lines, rows_by_type.get("PARAM", []))
     laser_in_base = _laser_in_base(laser["laser_xytheta"], laser["base_xytheta"])
     scan_poses = Trajectory(scan_stamps, laser["base_xytheta"], frame_id="odom")
@@ -258,6 +282,7 @@ def read_carmen(path: str | Path, cfg: InputConfig | None = None) -> Recording:
         "laser_poses_xytheta": laser["laser_xytheta"],
         "restamped": {"laser": int(scan_restamped.sum()), "odometry": odom_restamped},
         "stamps_by_line_order": line_order,
+        "stamp_shift_ns": shift_ns,
         "odometry_is_corrected": corrected and odometry is not None,
         **odom_meta,
     }
@@ -510,6 +535,10 @@ def _parse_laser(path: Path, kind: str, lines: list[bytes], rows: list[int], cfg
         checks.append((starts[:, None] + np.array([1, 3]), _MAX_ANGLE_RAD, "angle (rad)"))
         checks.append((starts + 4, _FLOAT32_MAX, "maximum range"))
     _check_in_range(path, kind, lines, rows, values, offsets, checks)
+    if kind == "ROBOTLASER1":  # beams spread from the start angle by a positive step (0: all one angle)
+        res_index = starts + 3
+        not_positive = _value_mask(values.shape[0], res_index[~(values[res_index] > 0)])
+        _reject_first(path, kind, lines, rows, not_positive, offsets, "angular resolution is not positive")
     flat_ranges = values[range_index]
     negative = np.flatnonzero(flat_ranges < 0)
     if negative.size:
@@ -665,6 +694,49 @@ def _monotone(
             f"({int(restamped.sum())} records re-stamped): the stamps are damaged"
         )
     return stamps, restamped, False
+
+
+def _non_negative(
+    path: Path,
+    scan_lines: NDArray,
+    scan_stamps: NDArray[np.int64],
+    odom_lines: NDArray | None,
+    odom_stamps: NDArray[np.int64] | None,
+    corrected: bool,
+    line_order: bool,
+) -> tuple[NDArray[np.int64], NDArray[np.int64] | None, int, bool]:
+    """Stamps of every record kind shifted by one amount so that none is negative.
+
+    Re-stamping extrapolates records before the first kept stamp one median step apart
+    (:func:`datasets.stamps.monotone_stamps_ns`): the placeholder stamps of ``orebro-corrected.log`` (every
+    scan at 0 s) become -236 ns .. 0, and its ODOM records reach -2115.9 s; a raw log may log negative stamps
+    itself. ROS time cannot be negative, and the clock offset of such a log carries no information, so
+    scans and odometry are moved together (their relative timing unchanged) by the whole number of seconds
+    that brings the earliest stamp to [0, 1 s). Returns ``(scan stamps, odometry stamps, shift in ns,
+    by_line_order)``; the shift is 0 (and the arrays untouched) when no stamp is negative. A shift that
+    would carry the latest stamp beyond the year 2200 stamps a corrected log by line order instead (as
+    :func:`_monotone` does; shift 0) and is a CarmenError for a raw log.
+    """
+    kinds = [scan_stamps] + ([odom_stamps] if odom_stamps is not None and odom_stamps.size else [])
+    earliest = min(int(k.min()) for k in kinds if k.size)
+    if earliest >= 0:
+        return scan_stamps, odom_stamps, 0, line_order
+    shift = -(earliest // NS_PER_S) * NS_PER_S  # whole seconds: the decimals of every stamp are kept
+    latest = max(int(k.max()) for k in kinds if k.size)
+    if latest + shift > MAX_STAMP_NS:
+        if corrected:
+            by_line = np.asarray(scan_lines, dtype=np.int64) * LINE_ORDER_STEP_NS
+            odom = (
+                None if odom_stamps is None else np.asarray(odom_lines, dtype=np.int64) * LINE_ORDER_STEP_NS
+            )
+            return by_line, odom, 0, True
+        raise CarmenError(
+            f"{path}: the timestamps run from {ns_to_decimal(earliest)} s to {ns_to_decimal(latest)} s: "
+            "shifted to start at 0 s they end after the year 2200 (ROS time cannot be negative): "
+            "the stamps are damaged"
+        )
+    shifted = scan_stamps + np.int64(shift)
+    return shifted, None if odom_stamps is None else odom_stamps + np.int64(shift), shift, line_order
 
 
 def _check_backsteps(
