@@ -114,8 +114,9 @@ def _check_stored_scans(
         )
     if angles_rad.shape != ranges_m.shape:
         raise ValueError(f"{ranges_m.shape[0]} ranges but {angles_rad.shape[0]} angles")
-    if np.any(ranges_m < 0):
-        raise ValueError(f"negative ranges (beam {int(np.argmax(ranges_m < 0))})")
+    negative = np.isfinite(ranges_m) & (ranges_m < 0)  # -inf is REP 117's "too close", kept by the readers
+    if np.any(negative):
+        raise ValueError(f"negative ranges (beam {int(np.argmax(negative))})")
     if stamps_ns.shape != (offsets.shape[0] - 1,):
         raise ValueError(f"{offsets.shape[0] - 1} scans but {stamps_ns.shape[0]} stamps")
     if laser_xytheta.shape != (3,) or not np.all(np.isfinite(laser_xytheta)):

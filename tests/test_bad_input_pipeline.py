@@ -104,7 +104,7 @@ def test_the_run_bounds_are_checked_before_training(small_log, tmp_path, monkeyp
     """A map larger than the limit only because of where SLAM put the scans fails before training and
     rendering (here the single-scan estimate is disabled so that the check on the run's bounds is what
     catches it)."""
-    monkeypatch.setattr(run_module, "scan_reach_m", lambda scans: 0.0)
+    monkeypatch.setattr(run_module, "scan_reach_m", lambda scans: 1e-3)  # a return, of no reach
     monkeypatch.setattr(MapBuilder, "fit", _fail)
     cfg = _config(tmp_path, {"scale": {"max_map_cells": 1000}})
     whole_run = rf"{small_log}: the maps of the run: .* cells, above .* = 1e\+03"
