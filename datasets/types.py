@@ -201,6 +201,19 @@ class Trajectory:
     def __len__(self) -> int:
         return int(self.stamps_ns.shape[0])
 
+    def within_span(self, stamps_ns: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """(M,) whether each of ``stamps_ns`` lies within the trajectory's time span, give or take
+        :data:`SPAN_SLACK_NS` or half the median period, whichever is longer (beyond, :meth:`interpolate`
+        would only repeat an end pose)."""
+        t = np.sort(self.stamps_ns)
+        if t.shape[0] == 0:
+            return np.zeros(np.shape(stamps_ns), dtype=bool)
+        slack = SPAN_SLACK_NS
+        if t.shape[0] > 1:
+            slack = max(slack, int(np.median(np.diff(t))) // 2)
+        q = np.asarray(stamps_ns, dtype=np.int64)
+        return (q >= t[0] - slack) & (q <= t[-1] + slack)
+
     def interpolate(self, stamps_ns: NDArray[np.int64]) -> FloatArray:
         """(M, 3) poses at ``stamps_ns``: linear in x, y and in unwrapped theta; clamped at the ends."""
         if len(self) == 0:
@@ -214,6 +227,11 @@ class Trajectory:
         out[:, 1] = np.interp(q, t, self.poses_xytheta[:, 1])
         out[:, 2] = wrap_angle_rad(np.interp(q, t, theta))
         return out
+
+
+#: A stamp this close to a trajectory's first or last one still lies within its time span
+#: (:meth:`Trajectory.within_span`; at least: half the median period where that is longer).
+SPAN_SLACK_NS = 100_000_000
 
 
 @dataclass(frozen=True)

@@ -39,16 +39,11 @@ from slam.result import SlamResult
 FloatArray = NDArray[np.float64]
 
 
-#: A scan this close to the odometry's first or last stamp (or half the median odometry period, when that is
-#: longer) still gets the end pose; beyond, it has no wheel pose.
-WHEEL_SPAN_SLACK_NS = 100_000_000
-
-
 def wheel_poses_at_scans(odometry: Trajectory, stamps_ns: NDArray[np.int64]) -> FloatArray:
     """(N, 3) wheel poses at the scan stamps: the odometry itself when it has one pose per scan at the same
     stamps (e.g. CARMEN's per-scan odometry), else interpolated (odometry sorted by stamp first). A scan
-    outside the odometry's time span (beyond :data:`WHEEL_SPAN_SLACK_NS` or half the median period) gets a
-    NaN row, not the end pose: the steps into and out of it are registered without wheels."""
+    outside the odometry's time span (:meth:`~datasets.types.Trajectory.within_span`) gets a NaN row, not
+    the end pose: the steps into and out of it are registered without wheels."""
     stamps = np.asarray(stamps_ns, dtype=np.int64)
     if len(odometry) == len(stamps) and np.array_equal(odometry.stamps_ns, stamps):
         return odometry.poses_xytheta.copy()
@@ -56,11 +51,7 @@ def wheel_poses_at_scans(odometry: Trajectory, stamps_ns: NDArray[np.int64]) -> 
     if not np.all(order == np.arange(len(order))):
         odometry = Trajectory(odometry.stamps_ns[order], odometry.poses_xytheta[order], odometry.frame_id)
     poses = odometry.interpolate(stamps)
-    t = odometry.stamps_ns
-    slack = WHEEL_SPAN_SLACK_NS
-    if t.shape[0] > 1:
-        slack = max(slack, int(np.median(np.diff(t))) // 2)
-    poses[(stamps < t[0] - slack) | (stamps > t[-1] + slack)] = np.nan
+    poses[~odometry.within_span(stamps)] = np.nan
     return poses
 
 

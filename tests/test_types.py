@@ -69,3 +69,22 @@ def test_cloud_to_scan_keeps_nearest_point_in_band() -> None:
     i90 = int(np.argmin(np.abs(angles - np.pi / 2)))
     assert ranges[i0] == 2.0 and ranges[i90] == 4.0
     assert np.isinf(ranges).sum() == 358
+
+
+def test_within_span_allows_the_slack_or_half_the_period() -> None:
+    """Stamps beyond a trajectory's ends count as within it up to SPAN_SLACK_NS, or half the median period
+    where that is longer; an unsorted trajectory is read by its sorted stamps."""
+    from datasets.types import SPAN_SLACK_NS, Trajectory
+
+    s = 10**9
+    dense = Trajectory(np.array([3, 1, 2]) * s // 10, np.zeros((3, 3)))  # 0.1 s period, unsorted
+    first, last = s // 10, 3 * s // 10
+    q = np.array([0, first - SPAN_SLACK_NS - 1, last + SPAN_SLACK_NS, last + SPAN_SLACK_NS + 1])
+    assert dense.within_span(q).tolist() == [True, False, True, False]
+    sparse = Trajectory(np.array([0, 4, 8]) * s, np.zeros((3, 3)))  # 4 s period: 2 s of slack
+    assert sparse.within_span(np.array([-2 * s, -2 * s - 1, 10 * s, 10 * s + 1])).tolist() == [
+        True,
+        False,
+        True,
+        False,
+    ]

@@ -35,7 +35,7 @@ a reading at or beyond the message's ``range_max`` is none either. ``meta["no_re
 ``range_m``: the largest declared ``range_max``), as the CARMEN reader's does.
 Odometry that no scan lies within (its header stamps wholly before or after the scans', or all zero) is an
 error naming both time spans; ``meta["scans_outside_odometry"]`` counts, per odometry topic, the scans
-outside its span (slack: :data:`ODOMETRY_SPAN_SLACK_NS` or half the median odometry period).
+outside its span (:meth:`~datasets.types.Trajectory.within_span`).
 """
 
 from __future__ import annotations
@@ -72,10 +72,6 @@ SCAN_POSE_SUFFIX = "_pose"  # scan poses of scan topic T are on T + "_pose"
 ALL_TOPICS = "all"
 NO_SCANS = "none"
 NO_ODOMETRY = "none"  # odom_topic "none": read the bag without odometry
-
-#: Scans this much beyond the odometry's time span still count as within it (at least; half the median
-#: odometry period when that is longer).
-ODOMETRY_SPAN_SLACK_NS = 100_000_000
 
 #: A tf rotation whose quaternion norm is within this of 1 is normalised; any other is refused.
 QUATERNION_NORM_TOLERANCE = 1e-2
@@ -435,8 +431,8 @@ class _BagReading:
     def _check_odometry_span(
         self, odometry: Trajectory, topic: str, scans: ScanSequence | None, source: int | None
     ) -> None:
-        """Count the scans (of ``source``, else all) outside the odometry's time span, beyond a slack of
-        :data:`ODOMETRY_SPAN_SLACK_NS` or half the median odometry period; refuse odometry no scan lies in.
+        """Count the scans (of ``source``, else all) outside the odometry's time span
+        (:meth:`~datasets.types.Trajectory.within_span`, as SLAM reads it); refuse odometry no scan lies in.
 
         Wheel poses are interpolated at the scan stamps downstream; outside the span that would be the end
         pose, so odometry wholly before or after the scans (or with broken header stamps) would silently hand
@@ -447,16 +443,13 @@ class _BagReading:
         stamps = scans.stamps_ns if source is None else scans.stamps_ns[scans.source_index == source]
         if stamps.size == 0:
             return
-        t = odometry.stamps_ns
-        slack = ODOMETRY_SPAN_SLACK_NS
-        if t.size > 1:
-            slack = max(slack, int(np.median(np.diff(t))) // 2)
-        inside = (stamps >= t[0] - slack) & (stamps <= t[-1] + slack)
+        inside = odometry.within_span(stamps)
         self.outside_odometry[topic] = int(stamps.size - np.count_nonzero(inside))
         if inside.any():
             return
         raise DatasetError(
-            f"{self.path}: odometry topic {shown_name(topic)} spans {_span_s(t)} but the scans span "
+            f"{self.path}: odometry topic {shown_name(topic)} spans {_span_s(np.sort(odometry.stamps_ns))} "
+            "but the scans span "
             f"{_span_s(stamps)}: no scan lies within the odometry's time span; fix the header stamps, or "
             f"pass --odom-topic {NO_ODOMETRY} to read the scans without odometry"
         )
