@@ -51,8 +51,17 @@ def _quiet_cluster_logs() -> Iterator[None]:
     """Silence the local cluster's own log lines below CRITICAL, in this process and in the workers it
     spawns (through the environment they inherit). When a run is interrupted or fails, the cluster's
     shutdown races (heartbeats to a closed scheduler, cancelled tasks) print pages of tracebacks that hide
-    the one line the command line prints; a task's own error still reaches the run through its future."""
-    names = ("distributed", "tornado", "asyncio")
+    the one line the command line prints; a task's own error still reaches the run through its future.
+    Loggers below those names with a level of their own are silenced too: distributed's configuration sets
+    ``tornado.application`` to ERROR, which let an interrupt's race in its ``sync`` print a traceback."""
+    bases = ("distributed", "tornado", "asyncio")
+    names = [*bases] + [
+        name
+        for name, logger in logging.root.manager.loggerDict.items()
+        if isinstance(logger, logging.Logger)
+        and logger.level != logging.NOTSET
+        and name.startswith(tuple(f"{base}." for base in bases))
+    ]
     levels = {name: logging.getLogger(name).level for name in names}
     env_key = "DASK_LOGGING__DISTRIBUTED"
     previous_env = os.environ.get(env_key)

@@ -438,3 +438,22 @@ def test_peak_memory_of_a_child_process_is_its_own() -> None:
     child = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
     assert peak_rss_mib() > 400 and float(ballast[-1]) == 1.0
     assert float(child.stdout) < 300  # an interpreter with numpy, not this process's 400 MiB
+
+
+def test_the_quiet_cluster_logs_cover_loggers_with_levels_of_their_own() -> None:
+    """distributed's configuration sets ``tornado.application`` to ERROR; within the local cluster's quiet
+    block it must be silent too (an interrupt's race in distributed's ``sync`` logged a traceback there),
+    and get its level back afterwards."""
+    import logging
+
+    import distributed  # noqa: F401  (its configuration sets the loggers' levels)
+
+    from pipeline.scale import _quiet_cluster_logs
+
+    app = logging.getLogger("tornado.application")
+    before = app.level
+    assert before != logging.NOTSET
+    with _quiet_cluster_logs():
+        assert not app.isEnabledFor(logging.ERROR)
+        assert not logging.getLogger("distributed.client").isEnabledFor(logging.ERROR)
+    assert app.level == before
