@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+import types
+import typing
+from typing import Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -16,6 +18,15 @@ class MovedKeyError(ValueError):
         self.old, self.new = old, new
 
 
+class BoolValueError(ValueError):
+    """A YAML ``true`` / ``false`` given to the configuration key ``key`` (relative to its section), which
+    takes a number or text."""
+
+    def __init__(self, key: str, value: Any) -> None:
+        super().__init__(f"'{key}' takes a number or text, not true/false")
+        self.key, self.value = key, value
+
+
 def refuse_moved_keys(data: Any, moved: dict[str, str]) -> Any:
     """``data`` unchanged; MovedKeyError for the first of its keys that ``moved`` says went elsewhere (use
     in a ``model_validator(mode="before")``)."""
@@ -26,10 +37,54 @@ def refuse_moved_keys(data: Any, moved: dict[str, str]) -> Any:
     return data
 
 
-class InputConfig(BaseModel):
-    """How a recording is read: topics, CARMEN record types, and the 3D-to-2D height band."""
+def _takes_bool(annotation: Any) -> bool:
+    """Whether a field of this type may hold a YAML ``true``/``false`` here: ``bool`` (or a ``Literal`` of
+    one) anywhere in it, ``Any``, or a section (left to pydantic's own message)."""
+    if annotation is bool or annotation is Any or isinstance(annotation, bool):
+        return True
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return True  # (a section: pydantic says it wants a mapping)
+    origin = typing.get_origin(annotation)
+    if origin is None and not isinstance(annotation, types.UnionType):
+        return False
+    return any(_takes_bool(arg) for arg in typing.get_args(annotation))
+
+
+def _holds_bool(value: Any) -> bool:
+    """Whether ``value`` is a bool or a list / tuple with one among its items (not walked deeper: a YAML
+    alias bomb of nested lists stays pydantic's to refuse, and a nested mapping is a section itself)."""
+    if isinstance(value, bool):
+        return True
+    return isinstance(value, (list, tuple)) and any(isinstance(v, bool) for v in value)
+
+
+class StageConfig(BaseModel):
+    """A section of the configuration: unknown keys, NaN and infinity refused, frozen; a YAML ``true`` or
+    ``false`` (or ``yes``, ``on``, ...) is refused where the key takes a number or text.
+
+    Pydantic's lax mode would read ``resolution_m: true`` as 1.0 and ``k: false`` as 0: a slip of the
+    pen that runs with a value nobody chose. A section whose key takes a bool on purpose through a
+    validator of its own (``slam.wheel_odometry: off``) lists it in ``bool_keys``.
+    """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    bool_keys: ClassVar[frozenset[str]] = frozenset()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_numbers(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            for key, value in data.items():
+                field = cls.model_fields.get(key) if isinstance(key, str) else None
+                if field is None or key in cls.bool_keys or not _holds_bool(value):
+                    continue
+                if not _takes_bool(field.annotation):
+                    raise BoolValueError(key, value)
+        return data
+
+
+class InputConfig(StageConfig):
+    """How a recording is read: topics, CARMEN record types, and the 3D-to-2D height band."""
 
     scan_topic: str | None = Field(
         None,

@@ -5,15 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
-from datasets.config import refuse_moved_keys
+from datasets.config import StageConfig, refuse_moved_keys
 
 
-class GridBaselineConfig(BaseModel):
+class GridBaselineConfig(StageConfig):
     """The occupancy-grid baseline (Thrun et al. 2005 inverse sensor model)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     resolution_m: float = Field(0.1, gt=0, le=100, description="cell size of the baseline grid")
     p_occupied: float = Field(0.7, gt=0.5, lt=1, description="inverse sensor model: p(occ) at an endpoint")
@@ -28,19 +26,15 @@ class GridBaselineConfig(BaseModel):
     )
 
 
-class SourceNoiseConfig(BaseModel):
+class SourceNoiseConfig(StageConfig):
     """Measurement noise of one laser (GPPOL): variances of its range and bearing readings."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     range_var_m2: float = Field(1e-4, ge=0, le=100, description="range variance (m^2)")
     bearing_var_rad2: float = Field(3e-6, ge=0, le=1, description="bearing variance (rad^2)")
 
 
-class FreeSpaceConfig(BaseModel):
+class FreeSpaceConfig(StageConfig):
     """Where a beam says "free" (the continuous free-space model of section 3.5 runs along these segments)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     no_return_length_m: float | None = Field(
         2.0,
@@ -82,10 +76,8 @@ class FreeSpaceConfig(BaseModel):
     )
 
 
-class ScanSelectionConfig(BaseModel):
+class ScanSelectionConfig(StageConfig):
     """Which scans of a run are mapped: one each time the laser moved or turned enough."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     min_travel_m: float = Field(
         0.5,
@@ -99,10 +91,8 @@ class ScanSelectionConfig(BaseModel):
     )
 
 
-class TrainingConfig(BaseModel):
+class TrainingConfig(StageConfig):
     """Hyperparameter learning (eq. 9) on local problems drawn from runs of scans spread over a recording."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     scans: int = Field(50, ge=1, description="hyperparameters are learnt from N scans")
     windows: int = Field(
@@ -130,10 +120,8 @@ class TrainingConfig(BaseModel):
     )
 
 
-class PlsConfig(BaseModel):
+class PlsConfig(StageConfig):
     """The probabilistic least-squares link p = Phi((alpha mu + beta) / sqrt(1 + alpha^2 sigma^2))."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     link: Literal["loo", "holdout"] = Field(
         "loo",
@@ -151,20 +139,16 @@ class PlsConfig(BaseModel):
     )
 
 
-class UnscentedConfig(BaseModel):
+class UnscentedConfig(StageConfig):
     """The unscented transform of each beam (Algorithm 3 of the paper)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     alpha: float = Field(0.3, gt=0, le=10, description="spread of the sigma points (the paper's xi)")
     beta: float = Field(2.0, ge=0, le=10, description="prior knowledge of the distribution (2: Gaussian)")
     kappa: float = Field(0.0, ge=0, le=10, description="secondary scaling")
 
 
-class GppolConfig(BaseModel):
+class GppolConfig(StageConfig):
     """GPPOL: training inputs are Gaussians (paper section 3.6), from the unscented transform of each beam."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     kernel: Literal["nn", "se", "matern32", "matern52"] = Field(
         "se",
@@ -236,10 +220,8 @@ MOVED_KEYS: dict[str, str] = {
 }
 
 
-class MappingConfig(BaseModel):
+class MappingConfig(StageConfig):
     """GP occupancy-map settings (paper defaults where the paper gives one)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     mapper: Literal["gppol", "gpfol"] = Field("gppol", description="GPPOL (uncertain inputs) or GPFOL")
     resolution_m: float = Field(0.1, gt=0, le=100, description="cell size of rendered maps")

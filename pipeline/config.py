@@ -7,9 +7,9 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field, ValidationError
 
-from datasets.config import InputConfig, MovedKeyError
+from datasets.config import BoolValueError, InputConfig, MovedKeyError, StageConfig
 from datasets.errors import ConfigError, shown
 from mapping.config import MappingConfig
 from mapping.exports import UNKNOWN_VARIANCE_FRACTION
@@ -29,7 +29,7 @@ CLI_OPTIONS: dict[str, str] = {
 }
 
 
-class ExportConfig(BaseModel):
+class ExportConfig(StageConfig):
     """Which map exports a run writes, and the one classification planners get from all of them.
 
     A cell is unknown when its GP variance exceeds ``unknown_variance_fraction`` of the prior variance;
@@ -37,8 +37,6 @@ class ExportConfig(BaseModel):
     ``mapping.free_threshold``, unknown between. The map_server PGM (``trinary``: 0 / 254 / 205) and the
     bag's ``nav_msgs/OccupancyGrid`` (100 / 0 / -1) both carry exactly this classification.
     """
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     bag_format: str = Field("mcap", pattern="^(mcap|bag)$", description="maps bag: ROS2 .mcap or ROS1 .bag")
     png: bool = Field(True, description="write PNG figures")
@@ -63,10 +61,8 @@ class ExportConfig(BaseModel):
     )
 
 
-class Config(BaseModel):
+class Config(StageConfig):
     """Everything a run needs, by stage."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     input: InputConfig = Field(default_factory=InputConfig)
     slam: SlamConfig = Field(default_factory=SlamConfig)
@@ -137,6 +133,9 @@ def _format_validation_error(source: str, error: ValidationError) -> str:
     moved = (first.get("ctx") or {}).get("error")
     if isinstance(moved, MovedKeyError):
         return f"{source}: configuration key '{where}.{moved.old}' is now '{where}.{moved.new}'"
+    if isinstance(moved, BoolValueError):
+        key = _key_path((*first["loc"], moved.key))
+        return f"{source}: invalid value {_shown(moved.value)} for '{key}': a number or text, not true/false"
     value = first.get("input")
     return f"{source}: invalid value {_shown(value)} for '{where}': {_one_line(first['msg'])}"
 

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from datasets.config import StageConfig
 
 SCHEDULER_PATTERN = r"^(local|(tcp|tls|ws|wss|inproc|ucx)://\S+)$"
 
 
-class ScaleConfig(BaseModel):
+class ScaleConfig(StageConfig):
     """Tiled rendering and where it runs."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     tile_cells: int = Field(
         64, ge=8, le=4096, description="maps are rendered in tiles of this many cells a side (any size gives "

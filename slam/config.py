@@ -6,19 +6,17 @@ world (see ``pipeline/evaluate_slam.py`` and the tests); the units are in the na
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
-from datasets.config import refuse_moved_keys
+from datasets.config import StageConfig, refuse_moved_keys
 
 RobustKernel = Literal["cauchy", "huber", "dcs", "none"]
 
 
-class OdometryConfig(BaseModel):
+class OdometryConfig(StageConfig):
     """Scan-to-submap odometry: every scan is registered against a local map of the recent scans."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     matcher: Literal["point_to_line", "kiss_icp"] = Field(
         "point_to_line",
@@ -171,10 +169,8 @@ class OdometryConfig(BaseModel):
     )
 
 
-class LoopClosureConfig(BaseModel):
+class LoopClosureConfig(StageConfig):
     """Loop-closure candidates, search and verification."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     enabled: bool = Field(True, description="search loop closures")
     min_separation_m: float = Field(20.0, ge=0, description="least travel between the two keyframes")
@@ -315,10 +311,8 @@ class LoopClosureConfig(BaseModel):
     robust_kernel_width: float = Field(3.0, gt=0, description="kernel width in whitened (sigma) units")
 
 
-class GraphConfig(BaseModel):
+class GraphConfig(StageConfig):
     """Pose-graph noise and solver."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     odometry_cov_scale: float = Field(
         0.5,
@@ -379,11 +373,9 @@ class GraphConfig(BaseModel):
     )
 
 
-class CloudLoopClosureConfig(BaseModel):
+class CloudLoopClosureConfig(StageConfig):
     """Loop closure of 3D inputs: point-to-point ICP between keyframe clouds, gated, with a robust loss.
     The 2D search of :class:`LoopClosureConfig` does not apply to clouds; names of shared meaning match."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     search_radius_m: float = Field(
         10.0, ge=0, description="loop candidates: keyframes within this distance (plus 3 sigma)"
@@ -412,10 +404,8 @@ CLOUD_MOVED_KEYS: dict[str, str] = {
 }
 
 
-class CloudOdometryConfig(BaseModel):
+class CloudOdometryConfig(StageConfig):
     """3D inputs (point clouds): KISS-ICP odometry on the clouds as they are, and the ``Pose3`` graph."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     voxel_size_m: float | None = Field(
         None, gt=0, le=5, description="KISS-ICP voxel size; None: max_range_m / 100 (KISS-ICP's own default)"
@@ -441,11 +431,9 @@ class CloudOdometryConfig(BaseModel):
         return refuse_moved_keys(data, CLOUD_MOVED_KEYS)
 
 
-class ConsistencyConfig(BaseModel):
+class ConsistencyConfig(StageConfig):
     """The covariances the mapper receives (:mod:`slam.consistency`): each scan's pose relative to the
     earlier passes over the places it observes, not to the graph's anchor."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     cell_m: float = Field(
         1.0, gt=0, le=100, description="cell size of the places keyframes observe (their scan endpoints)"
@@ -468,10 +456,10 @@ class ConsistencyConfig(BaseModel):
     )
 
 
-class SlamConfig(BaseModel):
+class SlamConfig(StageConfig):
     """Odometry, keyframing, loop closure and pose-graph settings."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    bool_keys: ClassVar[frozenset[str]] = frozenset({"wheel_odometry"})  # (YAML's off: see _yaml_off)
 
     keyframe_distance_m: float = Field(0.5, gt=0, description="new keyframe after this much travel")
     keyframe_rotation_rad: float = Field(0.5, gt=0, description="new keyframe after this much rotation")

@@ -107,3 +107,45 @@ def test_wheel_odometry_reads_yamls_unquoted_off_as_meant(tmp_path, text: str, e
     path.write_text("slam:\n  wheel_odometry: never\n")
     with pytest.raises(ConfigError, match=r"slam\.wheel_odometry"):
         load_config(path)
+
+
+def _leaf_keys(model: type, prefix: tuple[str, ...] = ()) -> list[tuple[tuple[str, ...], object]]:
+    """(key path, annotation) of every leaf key of a configuration section, nested sections walked."""
+    from pydantic import BaseModel
+
+    leaves = []
+    for name, field in model.model_fields.items():
+        ann = field.annotation
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            leaves += _leaf_keys(ann, (*prefix, name))
+        else:
+            leaves.append(((*prefix, name), ann))
+    return leaves
+
+
+def _yaml_at(path: tuple[str, ...], value: str) -> str:
+    return "".join(f"{'  ' * i}{key}:\n" for i, key in enumerate(path[:-1])) + (
+        f"{'  ' * (len(path) - 1)}{path[-1]}: {value}\n"
+    )
+
+
+def test_true_or_false_is_refused_where_a_key_takes_a_number_or_text(tmp_path) -> None:
+    """Pydantic's lax mode would read ``resolution_m: true`` as 1.0 and a count ``false`` as 0: every key
+    that takes a number or text refuses YAML's true / false (yes, no, on, off) with one line naming it; every
+    switch still takes them."""
+    path = tmp_path / "c.yaml"
+    refused = taken = 0
+    for keys, annotation in _leaf_keys(Config):
+        path.write_text(_yaml_at(keys, "yes"))
+        if annotation is bool or keys == ("slam", "wheel_odometry"):
+            load_config(path)  # a switch (wheel_odometry takes YAML's on / off as meant)
+            taken += 1
+            continue
+        dotted = ".".join(keys).replace(".", r"\.")
+        with pytest.raises(ConfigError, match=rf"invalid value True for '{dotted}': "):
+            load_config(path)
+        refused += 1
+    assert refused > 100 and taken >= 8
+    path.write_text("input:\n  cloud_height_band_m: [-0.2, false]\n")
+    with pytest.raises(ConfigError, match=r"invalid value \[-0\.2, False\] for 'input\.cloud_height_band_m'"):
+        load_config(path)
