@@ -413,6 +413,9 @@ def make_summary(
         ),
         "no-return readings": _no_return_text(no_return),
     }
+    notes = input_notes(rec.meta)
+    if notes:
+        table["input notes"] = "; ".join(notes)
     for name, share in (cell_shares or {}).items():
         table[f"cells occupied / free / unknown, {name} (%)"] = (
             f"{100 * share['occupied']:.1f} / {100 * share['free']:.1f} / {100 * share['unknown']:.1f}"
@@ -426,6 +429,7 @@ def make_summary(
         "input": str(input_path),
         "format": rec.format,
         "no_return": no_return,
+        "input_notes": notes,
         "mapper": config.mapping.mapper,
         "counts": {
             "scans": s["scans"],
@@ -456,6 +460,32 @@ def make_summary(
         "realtime_factor": data_s / timings["total"] if timings["total"] > 0 else None,
         "table": table,
     }
+
+
+def input_notes(meta: Any) -> list[str]:
+    """One line per repair or choice the reader made that a user should know of (a reader's ``meta``): a
+    damaged bag index bypassed, header stamps replaced by the bag's receive times, a CARMEN log's stamps
+    shifted or put in line order, scans outside the odometry's time span."""
+    if not isinstance(meta, dict):
+        return []
+    notes = [str(note) for note in meta.get("notes") or []]
+    notes += [
+        f"header stamps of {topic} all equal: stamped with the bag's receive times"
+        for topic in meta.get("bag_time_topics") or []
+    ]
+    shift_ns = meta.get("stamp_shift_ns") or 0
+    if shift_ns:
+        notes.append(
+            f"stamps shifted by {shift_ns / 1e9:+.0f} s to start at 0 (the log's clock starts negative)"
+        )
+    if meta.get("stamps_by_line_order"):
+        notes.append("stamps in line order (the log's own cannot be put in order)")
+    notes += [
+        f"{count} scans outside the time span of odometry {topic}: registered without wheels"
+        for topic, count in (meta.get("scans_outside_odometry") or {}).items()
+        if count
+    ]
+    return notes
 
 
 def _no_return_text(no_return: Any) -> str:

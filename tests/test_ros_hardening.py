@@ -15,6 +15,7 @@ from datasets.errors import DatasetError
 from datasets.ros.reader import read_ros1
 from datasets.ros.typestores import BagKind
 from datasets.types import beam_angles_rad
+from pipeline.run import input_notes
 from tests.conftest import data_file
 from tests.test_bad_input_ros import (
     STEP_NS,
@@ -201,3 +202,41 @@ def test_scans_outside_partial_odometry_are_counted(tmp_path: Path) -> None:
     (tmp_path / "m").mkdir()
     path = _odometry_bag("mcap", tmp_path / "m", [T0 + i * STEP_NS + 1 for i in range(5)])
     assert open_dataset(path).meta["scans_outside_odometry"] == {"/odom": 0}
+
+
+def _restamped(message: Message, stamp_ns: int, bag_time_ns: int) -> Message:
+    """``message`` with header stamp ``stamp_ns``, recorded at bag time ``bag_time_ns``."""
+    topic, msgtype, _, msg = message
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 10**9)
+    return topic, msgtype, bag_time_ns, msg
+
+
+@pytest.mark.parametrize("layout", ["bag", "mcap"])
+def test_header_stamps_all_equal_give_way_to_the_bags_times(tmp_path: Path, layout: str) -> None:
+    """A driver that never sets its header stamps (all 0) leaves no time in them: the bag's receive times
+    stamp that topic instead, so odometry still moves between scans; a topic with real stamps keeps them."""
+    n = 6
+
+    def messages(kind: BagKind) -> list[Message]:
+        out = [tf_static_msg(kind)]
+        out += [_restamped(scan_msg(kind, T0), 0, T0 + i * STEP_NS) for i in range(n)]
+        out += [odom_msg(kind, T0 + i * STEP_NS + 1, x=0.1 * i) for i in range(n)]
+        return out
+
+    rec = open_dataset(write_bag(layout, tmp_path, messages))
+    assert rec.meta["bag_time_topics"] == ["/scan"]
+    assert input_notes(rec.meta) == ["header stamps of /scan all equal: stamped with the bag's receive times"]
+    np.testing.assert_array_equal(rec.scans.stamps_ns, T0 + STEP_NS * np.arange(n))
+    np.testing.assert_array_equal(rec.odometry.stamps_ns, T0 + STEP_NS * np.arange(n) + 1)
+    assert np.ptp(rec.odometry.poses_xytheta[:, 0]) > 0.4
+
+    # the odometry's headers unset too: both topics run on the bag's clock
+    def unset_odometry(kind: BagKind) -> list[Message]:
+        out = messages(kind)
+        return [_restamped(m, 0, m[2]) if m[0] == "/odom" else m for m in out]
+
+    (tmp_path / "b").mkdir()
+    rec = open_dataset(write_bag(layout, tmp_path / "b", unset_odometry))
+    assert sorted(rec.meta["bag_time_topics"]) == ["/odom", "/scan"]
+    np.testing.assert_array_equal(rec.odometry.stamps_ns, T0 + STEP_NS * np.arange(n) + 1)
+    assert rec.meta["scans_outside_odometry"] == {"/odom": 0}

@@ -33,8 +33,10 @@ not unit quaternions (those within :data:`QUATERNION_NORM_TOLERANCE` of unit are
 ``inf`` and ``NaN`` ranges are accepted: REP 117 uses them for "no return" (and ``-inf`` for "too close");
 a reading at or beyond the message's ``range_max`` is none either. ``meta["no_return"]`` says so (``rule``,
 ``range_m``: the largest declared ``range_max``), as the CARMEN reader's does.
-Odometry that no scan lies within (its header stamps wholly before or after the scans', or all zero) is an
-error naming both time spans; ``meta["scans_outside_odometry"]`` counts, per odometry topic, the scans
+A topic whose header stamps are all equal (a driver that never sets them: stamp 0) is stamped with the bag's
+receive times instead (when those differ), and listed in ``meta["bag_time_topics"]``. Odometry that no
+scan lies within (its stamps wholly before or after the scans', or all zero) is an error naming both time
+spans; ``meta["scans_outside_odometry"]`` counts, per odometry topic, the scans
 outside its span (:meth:`~datasets.types.Trajectory.within_span`).
 """
 
@@ -120,6 +122,7 @@ class _BagReading:
         self.path = bag.path
         self.clamped: dict[str, int] = {}  # pose topic -> scans outside its time span (end pose used)
         self.outside_odometry: dict[str, int] = {}  # odometry topic -> scans outside its time span
+        self.bag_time_topics: list[str] = []  # topics whose equal header stamps gave way to the bag's times
 
     # -- topic choice ---------------------------------------------------------------------------------
 
@@ -264,6 +267,7 @@ class _BagReading:
                 laser_in_base = mounts[0]
             meta["base_frame"] = base
         meta["scans_outside_pose_topics"] = self.clamped
+        meta["bag_time_topics"] = self.bag_time_topics
         return Recording(
             source=self.path,
             format=self.bag.kind,
@@ -286,6 +290,18 @@ class _BagReading:
 
     # -- streams --------------------------------------------------------------------------------------
 
+    def _usable_stamps(self, topic: str, header_ns: list[int], bag_ns: list[int]) -> list[int]:
+        """``header_ns``, or the bag's receive times ``bag_ns`` (when they differ) if a driver stamped every
+        one of a topic's messages alike (unset headers, stamp 0): then the header gives no time at all, and
+        odometry interpolated at one instant would hand every scan the same pose. The topic goes to
+        ``meta["bag_time_topics"]``."""
+        if len(header_ns) < 2 or min(header_ns) != max(header_ns) or min(bag_ns) == max(bag_ns):
+            return header_ns
+        for i in range(1, len(bag_ns)):
+            self._check_order(topic, i, bag_ns[i], bag_ns[i - 1])
+        self.bag_time_topics.append(topic)
+        return bag_ns
+
     def _check_order(self, topic: str, i: int, stamp: int, previous: int | None) -> None:
         if previous is not None and stamp < previous:
             raise DatasetError(
@@ -306,7 +322,9 @@ class _BagReading:
         for k, topic in enumerate(topics):
             where = f"{self.path}: topic {shown_name(topic)}"
             previous = None
-            for i, (_, _, msg) in enumerate(self.bag.messages([topic])):
+            topic_stamps: list[int] = []
+            bag_times: list[int] = []
+            for i, (_, t, msg) in enumerate(self.bag.messages([topic])):
                 stamp = stamp_ns_of(msg.header.stamp)
                 self._check_order(topic, i, stamp, previous)
                 previous = stamp
@@ -344,11 +362,13 @@ class _BagReading:
                     )
                 ranges.append(r)
                 angles.append(angle_cache[key])
-                stamps.append(stamp)
+                topic_stamps.append(stamp)
+                bag_times.append(int(t))
                 rmin.append(float(msg.range_min))
                 rmax.append(float(msg.range_max))
                 frames.append(msg.header.frame_id)
                 source.append(k)
+            stamps += self._usable_stamps(topic, topic_stamps, bag_times)
         if not ranges:
             raise DatasetError(f"{self.path}: scan topic {shown_names(topics)} holds no messages")
         order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
@@ -381,6 +401,7 @@ class _BagReading:
             bag_times.append(t)
         if not ranges:
             raise DatasetError(f"{self.path}: scan topic {shown_name(topic)} holds no messages")
+        stamps = self._usable_stamps(topic, stamps, [int(t) for t in bag_times])
         scans = ScanSequence(ranges, angles, stamps, 0.0, cfg.cloud_range_max_m, frames, sources=[topic])
         loader = _CloudLoader(self.path, self.bag.kind, topic, bag_times)
         return scans, CloudSequence(np.asarray(stamps, dtype=np.int64), loader)
@@ -389,13 +410,14 @@ class _BagReading:
         """A trajectory from an Odometry / PoseStamped / PoseWithCovarianceStamped topic."""
         msgtype = self.bag.topics[topic].msgtype
         where = f"{self.path}: topic {shown_name(topic)}"
-        stamps, poses, covs = [], [], []
+        stamps, poses, covs, bag_times = [], [], [], []
         frame = "world"
         previous = None
-        for i, (_, _, msg) in enumerate(self.bag.messages([topic])):
+        for i, (_, t, msg) in enumerate(self.bag.messages([topic])):
             stamp = stamp_ns_of(msg.header.stamp)
             self._check_order(topic, i, stamp, previous)
             previous = stamp
+            bag_times.append(int(t))
             frame = msg.header.frame_id
             pose = msg.pose if msgtype == POSE_STAMPED_TYPE else msg.pose.pose
             q = pose.orientation
@@ -416,6 +438,7 @@ class _BagReading:
                     )
                 covs.append(c)
         cov = np.asarray(covs) if covs and np.any(np.asarray(covs)) else None
+        stamps = self._usable_stamps(topic, stamps, bag_times)
         return Trajectory(
             np.asarray(stamps, dtype=np.int64), np.asarray(poses, dtype=np.float64).reshape(-1, 3), frame, cov
         )
