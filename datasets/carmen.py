@@ -349,7 +349,8 @@ def _index_records(path: Path, data: bytes) -> tuple[list[bytes], dict[str, list
         raise CarmenError(f"{path}: empty file, not a CARMEN log")
     if b"\x00" in data[:65536]:
         raise CarmenError(f"{path}: binary data, not a CARMEN log (expected text records such as FLASER)")
-    lines = data.split(b"\n")
+    # (a log saved with classic Mac line ends, CR only, has no LF; CRLF lines keep their CR as whitespace)
+    lines = data.split(b"\n" if b"\n" in data or b"\r" not in data else b"\r")
     rows_by_type: dict[bytes, list[int]] = {}
     for i, line in enumerate(lines):
         head = line.split(None, 1)

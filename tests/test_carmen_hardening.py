@@ -181,3 +181,20 @@ def test_a_quantised_wall_hit_at_the_top_of_a_short_log_is_not_a_code() -> None:
     codes = np.concatenate([real_mm, np.full(400, 32.763), np.full(390, 32.767), np.full(30, 32.759)])
     found = repeated_maximum_m(codes)
     assert found is not None and found.values_m == (32.759, 32.763, 32.767)
+
+
+# ------------------------------------------------------------------------------------ line ends
+
+
+@pytest.mark.parametrize("line_end", [b"\r\n", b"\r"], ids=["crlf", "cr-only"])
+def test_line_ends_of_other_systems_read_as_unix_ones(tmp_path: Path, line_end: bytes) -> None:
+    """A log saved with Windows (CRLF) or classic Mac (CR only) line ends reads the arrays of its LF self."""
+    lines = _lines("intel/intel.clf.bz2")[:1500]
+    unix, other = tmp_path / "lf.clf", tmp_path / "other.clf"
+    unix.write_bytes(b"\n".join(lines))
+    other.write_bytes(line_end.join(lines))
+    a, b = read_carmen(unix), read_carmen(other)
+    assert len(a.scans) > 400 and len(b.scans) == len(a.scans)
+    np.testing.assert_array_equal(b.scans.stamps_ns, a.scans.stamps_ns)
+    np.testing.assert_array_equal(np.concatenate(b.scans.ranges_m), np.concatenate(a.scans.ranges_m))
+    np.testing.assert_array_equal(b.odometry.poses_xytheta, a.odometry.poses_xytheta)
