@@ -289,7 +289,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument(
         "--perturb-poses",
         metavar="SIGMA_XY_M,SIGMA_THETA_RAD",
-        help="map from seeded noisy poses (GPPOL gets their covariance), score against the true ones",
+        help="map from seeded noisy poses (GPPOL gets their covariance), score against the true ones; "
+        "at most 100 m and pi rad",
     )
     q.add_argument(
         "--breakdown",

@@ -67,6 +67,9 @@ from pipeline.progress import Progress
 
 DEFAULT_SEEDS = [0, 1, 2, 3, 4]
 PERTURB_SEED_BASE = 1_000_000
+# largest --perturb-poses: beyond 100 m the perturbed data's bounds outgrow any map's memory, and a heading
+# error of sigma pi is already near uniform
+MAX_PERTURB_XY_M, MAX_PERTURB_THETA_RAD = 100.0, np.pi
 
 
 def make_beams(rec: Recording, base_poses: np.ndarray, indices: np.ndarray, cfg: MappingConfig) -> Beams:
@@ -140,9 +143,10 @@ def parse_perturbation(text: str | None) -> tuple[float, float] | None:
     if text is None:
         return None
     values = parse_numbers(text, 2)
-    if values is None or not all(v >= 0 for v in values):
+    if values is None or not (0 <= values[0] <= MAX_PERTURB_XY_M and 0 <= values[1] <= MAX_PERTURB_THETA_RAD):
         raise PipelineError(
-            f"--perturb-poses must be SIGMA_XY_M,SIGMA_THETA_RAD (two numbers >= 0), got {text!r}"
+            f"--perturb-poses must be SIGMA_XY_M,SIGMA_THETA_RAD with 0 <= SIGMA_XY_M <= "
+            f"{MAX_PERTURB_XY_M:g} and 0 <= SIGMA_THETA_RAD <= {MAX_PERTURB_THETA_RAD:.4f} (pi), got {text!r}"
         )
     return values[0], values[1]
 
@@ -505,8 +509,9 @@ def evaluate_map(
     from datasets.simulation import load_ground_truth
 
     progress = progress or Progress()
-    if isinstance(perturb_poses, str):
-        perturb_poses = parse_perturbation(perturb_poses)
+    if perturb_poses is not None and not isinstance(perturb_poses, str):
+        perturb_poses = ",".join(repr(float(v)) for v in perturb_poses)  # (one check for both forms)
+    perturb_poses = parse_perturbation(perturb_poses)
     input_path = Path(input_path)
     gt_path = Path(str(input_path) + ".gt.npz")
     gt = load_ground_truth(gt_path) if gt_path.is_file() else None

@@ -285,7 +285,8 @@ def test_perturbation_is_seeded_and_parsed() -> None:
     z = np.random.default_rng(em.PERTURB_SEED_BASE + 3).standard_normal((5, 3))
     np.testing.assert_allclose(a, z * [0.1, 0.1, 0.02])
     assert em.parse_perturbation("0.1,0.02") == (0.1, 0.02)
-    for bad in ("0.1", "a,b", "-1,0.1", "0.1,0.02,3"):
+    assert em.parse_perturbation("100,3.14159") == (100.0, 3.14159)
+    for bad in ("0.1", "a,b", "-1,0.1", "0.1,0.02,3", "1e9,0.1", "100.1,0", "0.1,3.2", "0.1,nan"):
         with pytest.raises(PipelineError, match="perturb-poses"):
             em.parse_perturbation(bad)
 
