@@ -33,6 +33,7 @@ from pipeline.artifacts import (
     SCANS_FILE,
     TRAJECTORY_DIR,
     StoredScans,
+    checked_covariances,
     covariances_at,
     read_mapper_covariances,
     read_rigid_groups,
@@ -175,7 +176,11 @@ class RunView:
                 # the run's own per-scan arrays are taken as they are (covariances_at picks one of
                 # duplicate stamps for both)
                 same = np.array_equal(cov_stamps, stamps) and values.shape == (len(stamps), 3, 3)
-                cov[which] = values if same else covariances_at(stamps, cov_stamps, values)
+                cov[which] = (
+                    checked_covariances(values, len(stamps))
+                    if same
+                    else covariances_at(stamps, cov_stamps, values)
+                )
         return RunCovariances(stamps, cov["before"], cov["after"])
 
     @cached_property
@@ -190,7 +195,7 @@ class RunView:
                 return None
             cov_stamps, values = found
             if np.array_equal(cov_stamps, stamps) and values.shape == (len(stamps), 3, 3):
-                return values
+                return checked_covariances(values, len(stamps))
             return covariances_at(stamps, cov_stamps, values)
 
     @cached_property

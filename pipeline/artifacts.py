@@ -298,19 +298,26 @@ def read_keyframe_indices(path: Path) -> NDArray[np.int64]:
     return indices.astype(np.int64)
 
 
-def covariances_at(
-    stamps_ns: NDArray[np.int64], cov_stamps_ns: NDArray[np.int64], cov: NDArray
-) -> NDArray[np.float64]:
-    """(N, 3, 3) covariances at ``stamps_ns``: those of the latest stamp at or before each (the first one
-    before the start). Exact when ``cov_stamps_ns`` are the scan stamps themselves."""
+def checked_covariances(cov: NDArray, count: int) -> NDArray[np.float64]:
+    """``cov`` as (count, 3, 3) float64; PipelineError unless it has that shape (count > 0) and every entry
+    is a finite, symmetric positive semi-definite matrix."""
     cov = np.asarray(cov, dtype=np.float64)
-    if cov.ndim != 3 or cov.shape[1:] != (3, 3) or cov.shape[0] != len(cov_stamps_ns) or len(cov) == 0:
-        raise PipelineError(f"covariances of shape {cov.shape} for {len(cov_stamps_ns)} stamps")
+    if cov.ndim != 3 or cov.shape[1:] != (3, 3) or cov.shape[0] != count or count == 0:
+        raise PipelineError(f"covariances of shape {cov.shape} for {count} stamps")
     if not np.isfinite(cov).all():
         raise PipelineError("covariances: not every entry is finite")
     bad = _not_covariances(cov)
     if bad is not None:
         raise PipelineError(f"covariances: entry {bad} is not symmetric positive semi-definite")
+    return cov
+
+
+def covariances_at(
+    stamps_ns: NDArray[np.int64], cov_stamps_ns: NDArray[np.int64], cov: NDArray
+) -> NDArray[np.float64]:
+    """(N, 3, 3) covariances at ``stamps_ns``: those of the latest stamp at or before each (the first one
+    before the start). Exact when ``cov_stamps_ns`` are the scan stamps themselves."""
+    cov = checked_covariances(cov, len(cov_stamps_ns))
     order = np.argsort(cov_stamps_ns, kind="stable")
     s = np.asarray(cov_stamps_ns, np.int64)[order]
     idx = np.searchsorted(s, np.asarray(stamps_ns, np.int64), side="right") - 1

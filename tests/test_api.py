@@ -100,6 +100,26 @@ def test_load_run_errors_are_one_line(small_run, tmp_path) -> None:
         run.render((0.0, 0.0, 1e4, 1e4), 0.01)
 
 
+def test_covariances_that_are_none_are_refused_also_at_the_runs_own_stamps(small_run, tmp_path) -> None:
+    """The run's own per-scan covariances (stamps equal to the scans') skipped the checks that stamps of
+    another file get: negated matrices reached the caller as covariances."""
+    import shutil
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(small_run, run_dir)
+    path = run_dir / "trajectory" / "covariances.npz"
+    with np.load(path) as z:
+        arrays = {
+            key: -value if value.ndim == 3 and value.shape[1:] == (3, 3) else value
+            for key, value in z.items()
+        }
+    np.savez(path, **arrays)
+    run = load_run(run_dir)
+    for name in ("covariances", "mapper_covariances"):
+        with pytest.raises(PipelineError, match=r"covariances: entry \d+ is not symmetric positive semi-def"):
+            getattr(run, name)
+
+
 def test_mapping_exports_its_main_names_lazily() -> None:
     from mapping import GPOccupancyMap, MapBuilder, MapLayers
     from mapping.build import MapBuilder as Builder
