@@ -761,5 +761,6 @@ def _check_backsteps(
     raise CarmenError(
         f"{path}: line {line_numbers[j]}: timestamps go backwards: {kind} at {ns_to_decimal(stamps_ns[j])} s "
         f"is {back[j - 1] / NS_PER_S:.3f} s before line {line_numbers[k]} "
-        f"(more than input.carmen_stamp_jitter_s = {cfg.carmen_stamp_jitter_s:g} s)"
+        f"(more than input.carmen_stamp_jitter_s = {cfg.carmen_stamp_jitter_s:g} s); a SLAM-corrected log "
+        "takes any stamps but is known by its name: keep 'corrected' or '.gfs.' in it"
     )

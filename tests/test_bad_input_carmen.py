@@ -151,13 +151,15 @@ BAD: dict[str, tuple[str, bytes, str]] = {
             flaser("1.0 2.0 3.0", "5.5"),
         ).encode(),
         "line 4: timestamps go backwards: FLASER at 5.500000000 s is 5.500 s before line 3 "
-        "(more than input.carmen_stamp_jitter_s = 1 s)",
+        "(more than input.carmen_stamp_jitter_s = 1 s); a SLAM-corrected log takes any stamps but is known "
+        "by its name: keep 'corrected' or '.gfs.' in it",
     ),
     "odometry stamps backwards": (
         "odomback.clf",
         log_text(flaser("1.0 2.0 3.0", "10.0"), odom("100.0"), odom("20.0")).encode(),
         "line 4: timestamps go backwards: ODOM at 20.000000000 s is 80.000 s before line 3 "
-        "(more than input.carmen_stamp_jitter_s = 1 s)",
+        "(more than input.carmen_stamp_jitter_s = 1 s); a SLAM-corrected log takes any stamps but is known "
+        "by its name: keep 'corrected' or '.gfs.' in it",
     ),
     "odometry fields": (
         "odomfields.clf",
