@@ -21,7 +21,7 @@ from datasets.types import ScanSequence
 from mapping.beams import Beams, beams_from_scan_sequence, compose_laser_poses, select_scans_by_motion
 from mapping.calibration import holdout_link
 from mapping.config import MappingConfig
-from mapping.exports import MapLayers
+from mapping.exports import UNKNOWN_VARIANCE_FRACTION, MapLayers
 from mapping.gpmap import GPOccupancyMap
 from mapping.gppol import GaussianInputs, RigidGroups, SensorNoise, input_moments
 from mapping.grid import OccupancyGrid
@@ -53,18 +53,27 @@ class MapBuilder:
 
     Pose covariances, where a method takes them, are (N, 3, 3) world-frame covariances of the base poses
     (x, y, theta in m, m, rad) of the N scans of the recording, indexed by ``beams.scan_index``; None means
-    exact poses. GPFOL ignores them. Picklable (Dask ships it to its workers inside :class:`GPMapFactory`).
+    exact poses. GPFOL ignores them. ``unknown_variance_fraction`` is the classification's (the export
+    configuration's): the maps read the prior unsolved where their variance provably stays above it
+    (:func:`mapping.reach.reach_tolerance`). Picklable (Dask ships it to its workers inside
+    :class:`GPMapFactory`).
     """
 
     cfg: MappingConfig
     mapper: str
+    unknown_variance_fraction: float = UNKNOWN_VARIANCE_FRACTION
 
     @classmethod
-    def from_config(cls, cfg: MappingConfig, mapper: str | None = None) -> MapBuilder:
+    def from_config(
+        cls,
+        cfg: MappingConfig,
+        mapper: str | None = None,
+        unknown_variance_fraction: float = UNKNOWN_VARIANCE_FRACTION,
+    ) -> MapBuilder:
         """The builder of ``mapper`` (default ``cfg.mapper``); ConfigError if the mapper is unknown."""
         mapper = mapper or cfg.mapper
         check_mapper(mapper)
-        return cls(cfg, mapper)
+        return cls(cfg, mapper, unknown_variance_fraction)
 
     # -- beams ------------------------------------------------------------------------------------------
 
@@ -280,7 +289,14 @@ class MapBuilder:
         inputs = self.gaussian_inputs(beams, cov_xytheta, params.kernel, rigid_groups) if gppol else None
         try:
             return GPOccupancyMap(
-                beams, params, cfg.k_occupied, cfg.k_free, cfg.jitter, cfg.index_cell_m, inputs=inputs
+                beams,
+                params,
+                cfg.k_occupied,
+                cfg.k_free,
+                cfg.jitter,
+                cfg.index_cell_m,
+                inputs=inputs,
+                unknown_variance_fraction=self.unknown_variance_fraction,
             )
         except ValueError as exc:
             raise MappingError(f"cannot build the {self.mapper.upper()} map: {exc}") from None

@@ -32,6 +32,7 @@ from mapping.reach import (
     largest_eigenvalue,
     quadratic_range,
     reach_mask,
+    reach_tolerance,
     se_girard_peak,
     se_girard_reach_m,
     segment_pieces,
@@ -164,7 +165,10 @@ class GPOccupancyMap:
     """GP map over ``beams`` with learnt ``params``; ``k_occ`` + ``k_free`` neighbours per query.
 
     ``inputs`` (:class:`mapping.gppol.GaussianInputs`, the beams' input Gaussians) makes it GPPOL; without
-    it the training inputs are points (GPFOL)."""
+    it the training inputs are points (GPFOL). ``unknown_variance_fraction`` (the classification's, see
+    :mod:`mapping.exports`) lets places whose variance provably stays above that fraction of the prior, which
+    are unknown anyway, read the prior unsolved (:func:`mapping.reach.reach_tolerance`); None solves every
+    place where the solve would not give the prior to float32."""
 
     def __init__(
         self,
@@ -176,8 +180,10 @@ class GPOccupancyMap:
         index_cell_m: float | None = None,
         chunk: int = 256,
         inputs: GaussianInputs | None = None,
+        unknown_variance_fraction: float | None = None,
     ) -> None:
         self.beams = beams
+        self.unknown_variance_fraction = unknown_variance_fraction
         self.params = params
         self.k_occ = int(k_occ)
         self.k_free = int(k_free)
@@ -224,7 +230,11 @@ class GPOccupancyMap:
         return self._reach
 
     def _reach_mask(self) -> ReachMask | None:
-        r0 = kernel_reach_m(self.params.kernel)
+        p = self.params
+        tol = reach_tolerance(
+            p.noise_var, p.prior_variance, self.k_occ + self.k_free, self.unknown_variance_fraction
+        )
+        r0 = kernel_reach_m(p.kernel, tol)
         if r0 is None or len(self.beams) == 0:
             return None
         idx = self.index
@@ -247,7 +257,8 @@ class GPOccupancyMap:
             lam = np.concatenate([occ_lam, np.maximum(tr_hi, 0.0)])
             if self._inputs.mode == INPUTS_GIRARD:
                 ell = self.params.kernel.as_dict()["length_scale"]
-                reach = se_girard_reach_m(ell, lam)
+                # a piece's largest eigenvalue lies between half its least trace and its largest trace
+                reach = se_girard_reach_m(ell, lam, tol, np.concatenate([occ_lam, 0.5 * tr_lo]))
                 # inputs too spread to inform a place on their own (REACH_MIN_PEAK) reach nowhere
                 peak = se_girard_peak(ell, np.concatenate([occ_lam, 0.5 * tr_lo]))
                 reach[peak < REACH_MIN_PEAK] = 0.0

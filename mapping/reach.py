@@ -8,7 +8,7 @@ index cells. :class:`ReachMask` marks the places some training input can reach; 
 others with the prior at once (:meth:`mapping.gpmap.GPOccupancyMap.query`), so a map's cost follows its
 data, not its bounding box.
 
-The reach of an input is where its kernel falls below :data:`REACH_TOLERANCE` of the signal variance:
+The reach of an input is where its kernel falls below a tolerance ``tol`` of the signal variance:
 ``r0`` for an exact input (``k(r0) = tol k(0)``) plus ``c sqrt(lambda)`` for a Gaussian input whose
 covariance's largest eigenvalue is at most ``lambda`` (GPPOL, eq. 17-19). For the SE kernel's closed form
 the expected kernel is at most ``l / sqrt(l^2 + lambda) exp(-d^2 / (2 (l^2 + lambda)))`` of ``k(0)``, which
@@ -20,6 +20,15 @@ Under the closed form, an input whose expected kernel nowhere exceeds :data:`REA
 a place's nearest inputs and it is solved as before; where only such inputs are near, the place reads the
 prior, which they would have moved only slightly (``tests/test_mapping_reach.py`` measures how little).
 The neural-network kernel (eq. 7) does not decay: its maps keep every cell (no mask).
+
+How far is "beyond reach" (:func:`reach_tolerance`)? Where every training input's kernel is at most
+``t k(0)``, the variance reduction of eq. (3) for ``m`` neighbours is at most
+``|k*|^2 / sigma_n^2 <= m t^2 k(0)^2 / sigma_n^2``: ``K + sigma_n^2 I`` has no eigenvalue below
+``sigma_n^2`` since ``K`` is positive semi-definite (GPPOL's expected kernel too: an expectation of kernel
+matrices). With ``t^2 = rho sigma_n^2 / (m k(0))`` the variance there provably stays above ``1 - rho`` of
+the prior: with ``rho = 1 - unknown_variance_fraction`` the place is *unknown* (:mod:`mapping.exports`)
+whether it is solved or not, and it reads the prior unsolved. :data:`REACH_TOLERANCE` is the floor (a
+fraction near 1, a tiny noise), and the tolerance of a map built without a fraction.
 """
 
 from __future__ import annotations
@@ -36,8 +45,9 @@ from mapping.raster import within_distance
 
 FloatArray = NDArray[np.float64]
 
-#: k(d) / k(0) beyond an input's reach. The local GP keeps only the nearest inputs, so the places beyond
-#: every reach read the prior to about float32's resolution (tests/test_mapping_reach.py).
+#: The least k(d) / k(0) beyond an input's reach (:func:`reach_tolerance`). The local GP keeps only the
+#: nearest inputs, so the places beyond every reach at this tolerance read the prior to about float32's
+#: resolution (tests/test_mapping_reach.py).
 REACH_TOLERANCE = 1e-4
 #: Reaches are grouped into classes whose largest reach is at most this factor above their smallest
 #: (one distance transform each) ...
@@ -73,6 +83,19 @@ def kernel_reach_m(kernel: Kernel, tolerance: float = REACH_TOLERANCE) -> float 
     return hi
 
 
+def reach_tolerance(
+    noise_var: float, prior_var: float, neighbours: int, unknown_variance_fraction: float | None
+) -> float:
+    """``t``: beyond the reach of every input at this tolerance the local GP of ``neighbours`` inputs (noise
+    ``noise_var``, prior variance ``k(0) = prior_var``) keeps a variance above ``unknown_variance_fraction``
+    of the prior, so the place is unknown anyway (module docstring); at least :data:`REACH_TOLERANCE`, which
+    is also the tolerance of ``None`` (the prior only where a solve would give it to float32)."""
+    if unknown_variance_fraction is None or prior_var <= 0 or neighbours <= 0:
+        return REACH_TOLERANCE
+    rho = max(0.0, 1.0 - float(unknown_variance_fraction))
+    return max(REACH_TOLERANCE, math.sqrt(rho * max(float(noise_var), 0.0) / (neighbours * prior_var)))
+
+
 def spread_factor(max_node_norm: float) -> float:
     """``c``: under a quadrature rule whose largest standard node has norm ``max_node_norm``, an input of
     largest covariance eigenvalue ``lambda`` reaches ``c sqrt(lambda)`` further than an exact one."""
@@ -80,15 +103,24 @@ def spread_factor(max_node_norm: float) -> float:
 
 
 def se_girard_reach_m(
-    length_scale_m: float, largest_var_m2: FloatArray, tolerance: float = REACH_TOLERANCE
+    length_scale_m: float,
+    largest_var_m2: FloatArray,
+    tolerance: float = REACH_TOLERANCE,
+    least_var_m2: FloatArray | None = None,
 ) -> FloatArray:
     """(...,) reaches of Gaussian inputs under the SE kernel integrated in closed form (eq. 19): the
     expected kernel ``sigma_f^2 l^2 / sqrt(det(l^2 I + Sigma)) exp(-d^T (l^2 I + Sigma)^-1 d / 2)`` is at
     most ``A exp(-d^2 / (2 u))`` with ``u = l^2 + lambda``, ``A = l / sqrt(u)`` (``lambda`` >= the largest
     eigenvalue of ``Sigma``, ``largest_var_m2``), below ``tolerance`` beyond ``sqrt(2 u ln(A / tol))``
-    (0 where ``A`` <= tol: so spread an input that it never matters). The reach grows with ``lambda``
-    (for ``u`` below ``l^2 / (e tol^2)``), so an upper bound of the eigenvalue gives a safe reach."""
-    u = float(length_scale_m) ** 2 + np.maximum(np.asarray(largest_var_m2, dtype=np.float64), 0.0)
+    (0 where ``A`` <= tol: so spread an input that it never matters). The reach grows with ``lambda`` for
+    ``u`` up to ``u* = l^2 / (e tol^2)`` and shrinks beyond. Where the eigenvalue is known only to lie in
+    ``[least_var_m2, largest_var_m2]`` (a free segment's piece), the reach is the largest over that range:
+    at ``u*`` clipped into it."""
+    ell2 = float(length_scale_m) ** 2
+    u = ell2 + np.maximum(np.asarray(largest_var_m2, dtype=np.float64), 0.0)
+    if least_var_m2 is not None:
+        u_lo = ell2 + np.maximum(np.asarray(least_var_m2, dtype=np.float64), 0.0)
+        u = np.clip(ell2 / (math.e * tolerance**2), np.minimum(u_lo, u), u)
     log_ratio = np.log(float(length_scale_m) / (np.sqrt(u) * tolerance))
     return np.sqrt(2.0 * u * np.maximum(log_ratio, 0.0))
 

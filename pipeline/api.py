@@ -222,7 +222,9 @@ class RunView:
     def gp_map(self) -> GPOccupancyMap:
         """The GP occupancy map of this run's ``map``, built as the run built it (the scans selected along
         the odometry trajectory, at this map's poses and covariances, with the stored parameters)."""
-        builder = MapBuilder.from_config(self.config.mapping)
+        builder = MapBuilder.from_config(
+            self.config.mapping, None, self.config.export.unknown_variance_fraction
+        )
         laser = self.scans.laser_in_base_xytheta
         traj = self.trajectory
         before = self.map_name == "before"

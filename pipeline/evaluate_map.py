@@ -57,6 +57,7 @@ from mapping.evaluation import (
     nearest_hit_m,
     observed_points,
 )
+from mapping.exports import UNKNOWN_VARIANCE_FRACTION
 from mapping.gppol import RigidGroups
 from mapping.metrics import auc_shortfall_per_point, log_loss, roc_auc
 from pipeline.artifacts import mapper_covariances, mapper_rigid_groups, rigid_groups_label
@@ -209,8 +210,10 @@ def _map_and_score(
     observed: np.ndarray | None = None,
     breakdown: dict[str, np.ndarray] | None = None,
     rigid_groups: RigidGroups | None = None,
+    unknown_variance_fraction: float = UNKNOWN_VARIANCE_FRACTION,
 ) -> dict[str, Any]:
-    """Train and query GPPOL and GPFOL (``cov``, ``rigid_groups``: :meth:`mapping.build.MapBuilder.gp_map`),
+    """Train and query GPPOL and GPFOL (``cov``, ``rigid_groups``, ``unknown_variance_fraction``:
+    :meth:`mapping.build.MapBuilder.from_config`, :meth:`~mapping.build.MapBuilder.gp_map`),
     build the grid, score the three; times and parameters. With
     ``observed`` (P,) bool (:func:`observed_split`), also each AUC over the test points in observed and in
     unobserved cells (:func:`_split_aucs`), after the other keys; with ``breakdown``
@@ -219,7 +222,7 @@ def _map_and_score(
     split: dict[str, Any] = {}
     binned: dict[str, Any] = {}
     for mapper in MAPPERS:
-        builder = MapBuilder.from_config(cfg, mapper)
+        builder = MapBuilder.from_config(cfg, mapper, unknown_variance_fraction)
         t0 = time.perf_counter()
         params = builder.fit(beams, cov, seed_offset, rigid_groups)
         t1 = time.perf_counter()
@@ -327,6 +330,7 @@ def evaluate_holdout(
     mappable: np.ndarray | None = None,
     breakdown: bool = False,
     rigid_groups: RigidGroups | None = None,
+    unknown_variance_fraction: float = UNKNOWN_VARIANCE_FRACTION,
 ) -> dict[str, Any]:
     """The hold-out protocol of SPEC section 6 for GPPOL, GPFOL and the grid, one entry per seed.
 
@@ -339,7 +343,9 @@ def evaluate_holdout(
     the held-out ones never are. ``breakdown``: each AUC also by the test points' distance from their laser
     and by the mapped endpoints near them (:func:`breakdown_values`). ``rigid_groups``: the scans that
     share one pose error under ``cov`` (:meth:`mapping.build.MapBuilder.gp_map`; not with
-    ``perturb_poses``, whose errors are drawn per scan). Returns ``per_seed`` and ``block_scans``."""
+    ``perturb_poses``, whose errors are drawn per scan). ``unknown_variance_fraction``: the export
+    configuration's (the maps read the prior unsolved where they are unknown anyway,
+    :meth:`mapping.build.MapBuilder.from_config`). Returns ``per_seed`` and ``block_scans``."""
     scans = rec.scans
     n = len(scans)
     block = block_scans if block_scans is not None else holdout_block_scans(n)
@@ -379,7 +385,20 @@ def evaluate_holdout(
             observed, split = observed_split(beams, pts, cfg.resolution_m)
             binned = breakdown_values(beams, pts, ranges_m) if breakdown else None
             row.update(
-                _map_and_score(beams, seed_cov, cfg, pts, labels, seed, None, True, observed, binned, groups)
+                _map_and_score(
+                    beams,
+                    seed_cov,
+                    cfg,
+                    pts,
+                    labels,
+                    seed,
+                    None,
+                    True,
+                    observed,
+                    binned,
+                    groups,
+                    unknown_variance_fraction,
+                )
             )
             row.update(split)
             per_seed.append(row)
@@ -410,10 +429,12 @@ def evaluate_ground_truth(
     perturb_poses: tuple[float, float] | None = None,
     every: int = 1,
     rigid_groups: RigidGroups | None = None,
+    unknown_variance_fraction: float = UNKNOWN_VARIANCE_FRACTION,
 ) -> dict[str, Any]:
     """Score the cells of the ground-truth raster ``gt`` (read from ``gt_path``; SPEC section 6, simulated
     worlds; ``every`` > 1 scores every ``every``-th row and column only, for quick checks).
-    Laser noise from the ground truth; ``cov`` and ``rigid_groups`` as :func:`evaluate_holdout`."""
+    Laser noise from the ground truth; ``cov``, ``rigid_groups`` and ``unknown_variance_fraction`` as
+    :func:`evaluate_holdout`."""
     cfg = ground_truth_noise(cfg, gt)
     occ = np.asarray(gt.occupancy).astype(bool)
     bounds = gt.bounds_xy_m
@@ -428,7 +449,20 @@ def evaluate_ground_truth(
         row = {"seed": None, "test_points": int(labels.size), "occupied_test_points": int(labels.sum())}
         observed, split = observed_split(beams, centres, float(gt.resolution_m), gt.origin_xy_m)
         row.update(
-            _map_and_score(beams, cov, cfg, centres, labels, 0, bounds, False, observed, None, rigid_groups)
+            _map_and_score(
+                beams,
+                cov,
+                cfg,
+                centres,
+                labels,
+                0,
+                bounds,
+                False,
+                observed,
+                None,
+                rigid_groups,
+                unknown_variance_fraction,
+            )
         )
         row.update(split)
         bar.advance()
@@ -527,7 +561,16 @@ def evaluate_map(
         protocol = "ground_truth"
         used_seeds: list[int] = []
         out = evaluate_ground_truth(
-            rec, base_poses, gt, gt_path, cfg, progress, cov, perturb_poses, rigid_groups=groups
+            rec,
+            base_poses,
+            gt,
+            gt_path,
+            cfg,
+            progress,
+            cov,
+            perturb_poses,
+            rigid_groups=groups,
+            unknown_variance_fraction=config.export.unknown_variance_fraction,
         )
     else:
         protocol = "holdout"
@@ -542,6 +585,7 @@ def evaluate_map(
             perturb_poses,
             breakdown=breakdown,
             rigid_groups=groups,
+            unknown_variance_fraction=config.export.unknown_variance_fraction,
         )
     rows = out["per_seed"]
     auc = {k: float(np.mean([r[f"auc_{k}"] for r in rows])) for k in ("gppol", "gpfol", "grid")}

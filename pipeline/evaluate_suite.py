@@ -60,6 +60,7 @@ from datasets.registry import guess_format, open_dataset
 from datasets.types import Recording
 from mapping.config import MappingConfig
 from mapping.evaluation import HOLDOUT_BLOCK, holdout_block_scans
+from mapping.exports import UNKNOWN_VARIANCE_FRACTION
 from mapping.gppol import RigidGroups
 from pipeline.artifacts import mapper_covariances, mapper_rigid_groups, rigid_groups_label
 from pipeline.config import Config, load_config
@@ -298,6 +299,7 @@ def evaluate_slam_poses(
     test_points_from: Literal["reference", "slam"] = "reference",
     slam_rigid_groups: RigidGroups | None = None,
     breakdown: bool = False,
+    unknown_variance_fraction: float = UNKNOWN_VARIANCE_FRACTION,
 ) -> dict[str, Any]:
     """The hold-out protocol on our SLAM's poses (SPEC section 6, "Maps from our own SLAM"): the training
     scans mapped at our aligned poses (:func:`slam_poses_on_reference`; GPPOL with our rotated marginals;
@@ -311,7 +313,8 @@ def evaluate_slam_poses(
     the trajectories' consistency without taking either as the truth.
 
     ``slam_rigid_groups``: the rigid groups of our M poses (:meth:`mapping.build.MapBuilder.gp_map`;
-    None: each scan alone). ``breakdown``: as :func:`pipeline.evaluate_map.evaluate_holdout`."""
+    None: each scan alone). ``breakdown``, ``unknown_variance_fraction``: as
+    :func:`pipeline.evaluate_map.evaluate_holdout`."""
     if test_points_from not in ("reference", "slam"):
         raise ValueError(f"test_points_from must be 'reference' or 'slam', got {test_points_from!r}")
     base, cov, align, matched = slam_poses_on_reference(
@@ -334,6 +337,7 @@ def evaluate_slam_poses(
         mappable=matched,
         rigid_groups=groups,
         breakdown=breakdown,
+        unknown_variance_fraction=unknown_variance_fraction,
     )
     out["alignment_xytheta"] = align.tolist()
     out["unmatched_reference_scans"] = int(np.sum(~matched))
@@ -560,6 +564,7 @@ def _evaluate(
         row["maps"] = _maps_skipped("--slam-only")
         return
     cfg = config.mapping
+    fraction = config.export.unknown_variance_fraction
     progress = _BarProgress(bar)
     mode = cfg.gppol.pose_covariances
     slam_cov = mapper_covariances(result, "after", mode)
@@ -568,7 +573,7 @@ def _evaluate(
         f"SLAM {mode} covariances{shared} (aligned)" if slam_cov is not None else "none (laser noise only)"
     )
     if ref is None:
-        _own_maps_only(row, rec, result, slam_cov, cfg, seeds, progress, breakdown)
+        _own_maps_only(row, rec, result, slam_cov, cfg, seeds, progress, breakdown, fraction)
         return
     truth = reference_base_poses(ref, Path(reference_path))
     ours = np.asarray(result.poses_after_xytheta)[scans]
@@ -579,7 +584,9 @@ def _evaluate(
     row["maps"] = maps
     if gt is not None:
         t0 = time.perf_counter()
-        by_ref = evaluate_ground_truth(ref, truth, gt, gt_path, cfg, progress)
+        by_ref = evaluate_ground_truth(
+            ref, truth, gt, gt_path, cfg, progress, unknown_variance_fraction=fraction
+        )
         maps["reference_poses"] = _map_result(by_ref, "ground_truth", [], "reference", "none (exact poses)")
         timings["maps_reference_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -589,7 +596,17 @@ def _evaluate(
         if not np.all(matched):
             raise PipelineError(f"{ref.source}: {int(np.sum(~matched))} scans have no SLAM pose to map")
         groups = None if our_groups is None else our_groups.placed_on(len(ref.scans), rows)
-        by_slam = evaluate_ground_truth(ref, base, gt, gt_path, cfg, progress, cov=cov, rigid_groups=groups)
+        by_slam = evaluate_ground_truth(
+            ref,
+            base,
+            gt,
+            gt_path,
+            cfg,
+            progress,
+            cov=cov,
+            rigid_groups=groups,
+            unknown_variance_fraction=fraction,
+        )
         by_slam["alignment_xytheta"] = align.tolist()
         maps["slam_poses"] = _map_result(by_slam, "ground_truth", [], "slam", pose_cov)
         timings["maps_slam_s"] = time.perf_counter() - t0
@@ -603,7 +620,16 @@ def _evaluate(
     if block != HOLDOUT_BLOCK:
         notes.append(f"maps: blocks of {block} scans")
     t0 = time.perf_counter()
-    by_ref = evaluate_holdout(ref, truth, seeds, cfg, progress, block_scans=block, breakdown=breakdown)
+    by_ref = evaluate_holdout(
+        ref,
+        truth,
+        seeds,
+        cfg,
+        progress,
+        block_scans=block,
+        breakdown=breakdown,
+        unknown_variance_fraction=fraction,
+    )
     exact = "none (exact reference poses)"
     maps["reference_poses"] = _map_result(by_ref, "holdout", seeds, "reference", exact)
     timings["maps_reference_s"] = time.perf_counter() - t0
@@ -627,6 +653,7 @@ def _evaluate(
             test_points_from,
             our_groups,
             breakdown,
+            fraction,
         )
         maps[key] = _map_result(by_slam, "holdout", seeds, "slam", pose_cov)
         timings[timing] = time.perf_counter() - t0
@@ -641,10 +668,12 @@ def _own_maps_only(
     seeds: list[int],
     progress: Progress,
     breakdown: bool = False,
+    unknown_variance_fraction: float = UNKNOWN_VARIANCE_FRACTION,
 ) -> None:
     """The map score of a recording without any reference (SPEC section 6, "own test points"): the
     hold-out protocol with our SLAM's poses after loop closure for the training scans and the test points
-    alike, where it has at least 100 scans."""
+    alike, where it has at least 100 scans (``unknown_variance_fraction``: as
+    :func:`pipeline.evaluate_map.evaluate_holdout`)."""
     n = len(rec.scans)
     block = holdout_block_scans(n)
     maps: dict[str, Any] = {"reference_poses": None, "slam_poses": None, "slam_poses_own_test_points": None}
@@ -660,7 +689,16 @@ def _own_maps_only(
     cov = None if slam_cov is None else np.asarray(slam_cov)
     groups = mapper_rigid_groups(result, cfg.gppol.rigid_groups)
     by_self = evaluate_holdout(
-        rec, ours, seeds, cfg, progress, cov, block_scans=block, rigid_groups=groups, breakdown=breakdown
+        rec,
+        ours,
+        seeds,
+        cfg,
+        progress,
+        cov,
+        block_scans=block,
+        rigid_groups=groups,
+        breakdown=breakdown,
+        unknown_variance_fraction=unknown_variance_fraction,
     )
     mode = cfg.gppol.pose_covariances
     shared = rigid_groups_label(cfg.gppol.rigid_groups)

@@ -217,11 +217,12 @@ def remap_run(
         not recompute
         and tuple(map_bounds) == run_bounds
         and cfg == run_config.mapping
+        and config.export.unknown_variance_fraction == run_config.export.unknown_variance_fraction
         and config.scale.tile_cells == run_config.scale.tile_cells
         and RigidGroups.equal(new_groups, run_groups)
     )
     laser = stored.laser_in_base_xytheta
-    builder = MapBuilder.from_config(cfg)
+    builder = MapBuilder.from_config(cfg, None, config.export.unknown_variance_fraction)
     selected = builder.select_scans(odo_poses, laser)
     with (
         stage_boundary("writing", out_dir, name_known_errors=False),

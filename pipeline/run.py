@@ -104,7 +104,7 @@ def build_maps(
     one pose error in every GPPOL map (:func:`pipeline.artifacts.mapper_rigid_groups`; None: each scan alone).
     """
     cfg = config.mapping
-    builder = MapBuilder.from_config(cfg)
+    builder = MapBuilder.from_config(cfg, None, config.export.unknown_variance_fraction)
     if selected is None:
         selected = builder.select_scans(next(iter(trajectories.values()))[0], laser_in_base)
     beams = {

@@ -74,6 +74,8 @@ def test_readme_example_runs_and_queries_the_stored_map(small_run) -> None:
 def test_before_map_renders_as_stored_and_differs_from_after(small_run) -> None:
     before = load_run(small_run, map="before")
     assert_same_map(before.render(), before.layers)
+    # the stored maps and the rebuilt one leave the same unknown places to the prior: the run's fraction
+    assert before.gp_map.unknown_variance_fraction == before.config.export.unknown_variance_fraction
     after = load_run(small_run)
     np.testing.assert_array_equal(before.trajectory.stamps_ns, after.trajectory.stamps_ns)
     assert np.abs(before.trajectory.poses_before_xytheta - before.trajectory.poses_after_xytheta).max() > 0.1

@@ -21,6 +21,7 @@ from mapping.reach import (
     largest_eigenvalue,
     quadratic_range,
     reach_mask,
+    reach_tolerance,
     se_girard_peak,
     se_girard_reach_m,
     segment_pieces,
@@ -244,6 +245,89 @@ def test_metres_uncertain_scans_mark_nothing_and_leave_the_map_as_solved_everywh
     assert np.all(a.probability[~near] == params.unseen_probability)
     assert np.abs(b.probability[~near] - params.unseen_probability).max() < 1e-3
     assert b.variance[~near].min() > (1 - 1e-4) * params.prior_variance
+
+
+def test_reach_tolerance_bounds_the_variance_reduction_of_any_local_problem() -> None:
+    """Module docstring: with every input beyond the reach at ``reach_tolerance(noise, k0, m, f)`` the
+    local GP's variance stays above ``f`` of the prior, whatever the inputs' layout (random ones, clustered
+    ones, a ring around the query); the floor is REACH_TOLERANCE."""
+    rng = np.random.default_rng(0)
+    for sf2, ell, noise, m, f in [
+        (1.1, 0.3, 0.1, 30, 0.9),
+        (0.8, 0.5, 0.01, 30, 0.6),
+        (2.0, 0.2, 0.3, 12, 0.95),
+    ]:
+        se = make_kernel("se", {"sigma_f": math.sqrt(sf2), "length_scale": ell})
+        t = reach_tolerance(noise, sf2, m, f)
+        assert t == pytest.approx(math.sqrt((1 - f) * noise / (m * sf2)))
+        r0 = kernel_reach_m(se, t)
+        worst = 0.0
+        for layout in range(300):
+            angles = (
+                rng.uniform(0, 2 * np.pi, m) if layout % 3 else np.linspace(0, 2 * np.pi, m, endpoint=False)
+            )
+            radius = r0 * (1.0 + (rng.exponential(0.3, m) if layout % 3 == 1 else np.zeros(m)))
+            X = np.column_stack([radius * np.cos(angles), radius * np.sin(angles)])
+            if layout % 3 == 2:  # clustered: near-duplicate inputs, K + noise I nearly singular
+                X = X[:1] + rng.normal(0, 1e-3, (m, 2)) * ell
+                X *= r0 / np.linalg.norm(X, axis=1).min()
+            K = se.of_difference((X[:, None, :] - X[None, :, :]).reshape(-1, 2)).reshape(m, m)
+            ks = se.of_difference(X)
+            assert ks.max() <= t * sf2 * (1 + 1e-9)
+            reduction = ks @ np.linalg.solve(K + noise * np.eye(m), ks)
+            worst = max(worst, reduction / sf2)
+        assert worst <= 1 - f
+    assert reach_tolerance(1e-9, 1.0, 30, 0.9) == REACH_TOLERANCE
+    assert reach_tolerance(0.1, 1.0, 30, None) == REACH_TOLERANCE
+    assert reach_tolerance(0.1, 1.0, 30, 1.0) == REACH_TOLERANCE
+
+
+def test_se_girard_reach_over_a_range_of_eigenvalues_is_the_largest_of_the_range() -> None:
+    """A free segment's piece knows its eigenvalue only within a range; the reach grows and then shrinks
+    with the eigenvalue, so the range's reach is its largest (not the one at the upper end)."""
+    ell, tol = 0.3, 0.02
+    for lo, hi in [(0.0, 0.01), (0.0, 500.0), (50.0, 400.0), (300.0, 2000.0)]:
+        ranged = float(se_girard_reach_m(ell, hi, tol, lo))
+        inside = se_girard_reach_m(ell, np.linspace(lo, hi, 2001), tol)
+        assert ranged >= inside.max() * (1 - 1e-12)
+        assert ranged <= inside.max() * (1 + 1e-3)
+    assert float(se_girard_reach_m(ell, 500.0, tol, 0.0)) > float(se_girard_reach_m(ell, 500.0, tol))
+
+
+@pytest.mark.parametrize(("gaussian", "fraction"), [(True, 0.9), (False, 0.9), (True, 0.6)])
+def test_a_reach_of_the_unknown_fraction_changes_no_places_class(intel_beams, gaussian, fraction) -> None:
+    """Given the classification's fraction, the reach shrinks to where the variance bound proves a place
+    unknown: fewer places are solved; each place it leaves to the prior has, solved, a variance above that
+    fraction of the prior (unknown either way), and where it solves, the map is the map solved everywhere."""
+    beams, cov = intel_beams
+    params = GPParams(make_kernel("se", (0.9, 0.3)), 0.05, 6.0, -0.4)
+
+    def gp_map(unknown_variance_fraction: float | None) -> GPOccupancyMap:
+        inputs = None
+        if gaussian:
+            moments = input_moments(beams, cov, [SensorNoise(0.01, 1e-4)])
+            laser = input_moments(beams, None, [SensorNoise(0.01, 1e-4)])
+            inputs = GaussianInputs(moments, InputExpectation(GIRARD, 1), local_moments=laser)
+        return GPOccupancyMap(
+            beams, params, 15, 15, inputs=inputs, unknown_variance_fraction=unknown_variance_fraction
+        )
+
+    tight, floor, solved = gp_map(fraction), gp_map(None), gp_map(None)
+    solved._reach, solved._reach_done = None, True
+    x0, y0, x1, y1 = tight.bounds_xy_m(margin_m=5.0)
+    gx, gy = np.meshgrid(np.arange(x0, x1, 0.07), np.arange(y0, y1, 0.07))
+    q = np.column_stack([gx.ravel(), gy.ravel()])
+    near, near_floor = tight.reach().contains(q), floor.reach().contains(q)
+    assert not (near & ~near_floor).any()
+    assert near.sum() < 0.9 * near_floor.sum()
+    a, b = tight.query(q), solved.query(q)
+    for name in ("mean", "variance", "probability"):  # (a few in a million differ by how queries share SIMD
+        x, y = getattr(a, name)[near], getattr(b, name)[near]  # lanes: a near-singular lane is redone alone)
+        assert np.mean(x == y) > 0.9999
+        np.testing.assert_allclose(x, y, rtol=0, atol=2e-3)
+    prior = params.prior_variance
+    assert np.all(a.variance[~near] == prior) and np.all(a.probability[~near] == params.unseen_probability)
+    assert b.variance[~near].min() > fraction * prior
 
 
 def test_the_nn_kernel_solves_every_query(intel_beams) -> None:
