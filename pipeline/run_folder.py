@@ -158,7 +158,9 @@ def staged_run_folder(
 
     The caller writes every file, ``summary.json`` last (see :func:`write_summary`). If the block raises
     (including KeyboardInterrupt, and SIGTERM, which the command line turns into one), the temporary folder
-    is deleted and ``out_dir`` is untouched; staging folders left by dead processes are removed first.
+    is deleted and ``out_dir`` is untouched; staging folders left by dead processes are removed first. If
+    ``out_dir`` appeared (or changed so that it may no longer be replaced) while the block ran, the finished
+    run goes to ``DIR-2`` (the first free such name) and a PipelineError says so: neither is lost.
     """
     out_dir = Path(out_dir)
     check_output_dir(out_dir, overwrite, reads=reads)
@@ -175,6 +177,11 @@ def staged_run_folder(
         if not (staging / SUMMARY_NAME).is_file():
             raise PipelineError(f"{out_dir}: run finished without writing {SUMMARY_NAME}")
         if out_dir.exists():
+            problem = _no_longer_replaceable(out_dir, overwrite, reads)
+            if problem is not None:  # (another run, or the user, wrote it while this run worked)
+                kept = _free_sibling(out_dir)
+                staging.rename(kept)
+                raise PipelineError(f"{out_dir}: {problem}; this run's result is kept in {kept}")
             retired = out_dir.with_name(f"{out_dir.name}.replaced-{os.getpid()}")
             out_dir.rename(retired)
             staging.rename(out_dir)
@@ -184,6 +191,28 @@ def staged_run_folder(
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
+
+
+def _no_longer_replaceable(out_dir: Path, overwrite: bool, reads: Iterable[Path | None]) -> str | None:
+    """Why the finished run may not replace ``out_dir``, which exists now (it may have appeared, or changed,
+    since :func:`check_output_dir` let the run start); None if it may."""
+    if not overwrite:
+        return "appeared while the run worked (without --overwrite it is not replaced)"
+    if not out_dir.is_dir():
+        return "became something other than a folder while the run worked"
+    try:
+        _check_replaceable(out_dir, reads)
+    except PipelineError as exc:
+        return f"changed while the run worked ({str(exc).removeprefix(f'{out_dir}: ')})"
+    return None
+
+
+def _free_sibling(out_dir: Path) -> Path:
+    """``DIR-2``, ``DIR-3``, ...: the first name beside ``out_dir`` that nothing holds."""
+    k = 2
+    while out_dir.with_name(f"{out_dir.name}-{k}").exists():
+        k += 1
+    return out_dir.with_name(f"{out_dir.name}-{k}")
 
 
 def params_path(maps_dir: Path) -> Path:

@@ -54,6 +54,31 @@ def test_existing_folder_needs_overwrite(tmp_path) -> None:
     assert not (out / "old.txt").exists() and (out / "summary.json").exists()
 
 
+def test_a_folder_that_appears_while_the_run_works_is_kept_and_so_is_the_run(tmp_path) -> None:
+    """Another run (or the user) writes ``--out`` while this run works: without --overwrite it is not
+    replaced at the end, nor is a folder of other files with it; the finished run goes beside it."""
+    out = tmp_path / "run"
+    with pytest.raises(PipelineError, match=r"run: appeared while the run worked .* kept in \S+run-2$"):
+        with staged_run_folder(out) as stage:
+            write_summary(stage, {"scans": 3})
+            out.mkdir()
+            (out / "notes.txt").write_text("mine")
+    assert (out / "notes.txt").read_text() == "mine"
+    assert read_summary(tmp_path / "run-2") == {"scans": 3}
+    # --overwrite of a run folder that the user filled with other files meanwhile
+    (tmp_path / "run-2").rename(tmp_path / "run-3")
+    write_summary(out, {})
+    (out / "notes.txt").unlink()
+    with pytest.raises(PipelineError, match=r"changed while the run worked .*not a run folder.* kept in"):
+        with staged_run_folder(out, overwrite=True) as stage:
+            write_summary(stage, {"scans": 4})
+            (out / "summary.json").unlink()
+            (out / "notes.txt").write_text("mine")
+    assert (out / "notes.txt").read_text() == "mine"
+    assert read_summary(tmp_path / "run-2") == {"scans": 4}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run", "run-2", "run-3"]
+
+
 def test_read_summary_of_incomplete_folder(tmp_path) -> None:
     with pytest.raises(PipelineError, match="not a complete run folder"):
         read_summary(tmp_path)
