@@ -134,6 +134,7 @@ def cmd_run(args: argparse.Namespace, emit_json: EmitJson) -> int:
     from pipeline.run import default_run_dir
 
     out_dir = args.out if args.out is not None else default_run_dir(args.input)
+    _check_rerun(args, args.input)
     result = run_pipeline(
         args.input,
         out_dir,
@@ -149,6 +150,7 @@ def cmd_remap(args: argparse.Namespace, emit_json: EmitJson) -> int:
     from pipeline.remap import default_remap_dir, remap_run
 
     out_dir = args.out if args.out is not None else default_remap_dir(args.run_dir)
+    _check_rerun(args, args.run_dir, args.poses, args.covariances)
     result = remap_run(
         run_dir=args.run_dir,
         poses=args.poses,
@@ -163,6 +165,15 @@ def cmd_remap(args: argparse.Namespace, emit_json: EmitJson) -> int:
     )
     _write_rerun(args, out_dir)
     return _report(result, args, emit_json, f"remap {args.run_dir}")
+
+
+def _check_rerun(args: argparse.Namespace, *reads: Path | None) -> None:
+    """``--rerun FILE.rrd`` checked before any work (a run of minutes must not end on a bad path or replace
+    a recording without --overwrite)."""
+    if args.rerun is not None:
+        from pipeline.viewer import check_rerun_path
+
+        check_rerun_path(args.rerun, args.overwrite, reads)
 
 
 def _write_rerun(args: argparse.Namespace, folder: Path) -> None:

@@ -50,7 +50,7 @@ from pipeline.artifacts import (
     read_scans,
 )
 from pipeline.errors import PipelineError
-from pipeline.run_folder import read_summary
+from pipeline.run_folder import probe_writable, read_summary
 from slam.trajectory_io import read_tum
 
 APPLICATION_ID = "gpom"
@@ -252,6 +252,30 @@ def _closure_segments(summary: dict[str, Any], poses_xytheta: NDArray, run_dir: 
     if ((pairs < 0) | (pairs >= n)).any():
         raise PipelineError(f"{run_dir}/summary.json: a loop closure names a scan outside 0..{n - 1}")
     return np.asarray(poses_xytheta, np.float64)[pairs][:, :, :2]
+
+
+def check_rerun_path(rrd_path: Path, overwrite: bool = False, reads: tuple[Path | None, ...] = ()) -> None:
+    """Fail before any work if ``rrd_path`` cannot take a Rerun recording: its name must end in ``.rrd``, an
+    existing file is replaced only with ``overwrite`` (and never one the command reads), and the nearest
+    existing folder above it must be writable. PipelineError naming the path."""
+    rrd_path = Path(rrd_path)
+    if rrd_path.suffix != ".rrd":
+        raise PipelineError(f"{rrd_path}: a Rerun recording must end in .rrd")
+    if rrd_path.is_dir():
+        raise PipelineError(f"{rrd_path}: is a folder, not a Rerun recording")
+    if rrd_path.exists():
+        if not overwrite:
+            raise PipelineError(f"{rrd_path}: already exists (use --overwrite to replace it)")
+        if any(read is not None and Path(read).resolve() == rrd_path.resolve() for read in reads):
+            raise PipelineError(f"{rrd_path}: is what this command reads; --overwrite would replace it")
+    ancestor = rrd_path.absolute().parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise PipelineError(f"{rrd_path}: cannot be created ({ancestor} is not a folder)")
+    reason = probe_writable(ancestor)
+    if reason is not None:
+        raise PipelineError(f"{rrd_path}: cannot write into {ancestor} ({reason})")
 
 
 def write_rerun(run_dir: Path, rrd_path: Path, ellipse_every: int | None = None) -> Path:

@@ -23,6 +23,7 @@ from pipeline.run_folder import write_summary
 from pipeline.viewer import (
     MAP_Z_M,
     MAX_STATIC_ELLIPSES,
+    check_rerun_path,
     covariance_ellipses_xy,
     occupancy_u8,
     write_rerun,
@@ -298,3 +299,38 @@ def test_bad_run_folders_and_outputs(run_dir, tmp_path) -> None:
     with pytest.raises(PipelineError, match="no such folder"):
         write_rerun(run_dir, tmp_path / "missing" / "a.rrd")
     assert not list(tmp_path.glob("*.rrd")) and not list(tmp_path.glob(".a.rrd*"))
+
+
+def test_rerun_path_is_checked_before_any_work(tmp_path) -> None:
+    """``--rerun FILE.rrd`` is checked before the run: an existing recording is replaced only with
+    --overwrite (and never the command's input), and a bad name or place fails at once, not after the run."""
+    import subprocess
+    import sys
+
+    existing = tmp_path / "mine.rrd"
+    existing.write_bytes(b"user data")
+    with pytest.raises(PipelineError, match=r"mine\.rrd: already exists \(use --overwrite"):
+        check_rerun_path(existing)
+    check_rerun_path(existing, overwrite=True)
+    with pytest.raises(PipelineError, match="is what this command reads"):
+        check_rerun_path(existing, overwrite=True, reads=(tmp_path / "in.clf", existing))
+    with pytest.raises(PipelineError, match=r"must end in \.rrd"):
+        check_rerun_path(tmp_path / "in.clf")
+    (tmp_path / "d.rrd").mkdir()
+    with pytest.raises(PipelineError, match="is a folder"):
+        check_rerun_path(tmp_path / "d.rrd")
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(PipelineError, match=r"cannot be created \(.*f is not a folder\)"):
+        check_rerun_path(tmp_path / "f" / "sub" / "a.rrd")
+    check_rerun_path(tmp_path / "new" / "run" / "a.rrd")  # (inside the run folder about to be made)
+
+    repo = Path(__file__).resolve().parents[1]
+    log = tmp_path / "in.clf"
+    log.write_text("FLASER 3 1.0 1.0 1.0 0 0 0 0 0 0 1.0 host 1.0\n")
+    proc = subprocess.run(
+        [sys.executable, "run.py", "run", str(log), "--out", str(tmp_path / "o"), "--rerun", str(existing)],
+        cwd=repo, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 1 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "mine.rrd: already exists" in proc.stderr
+    assert existing.read_bytes() == b"user data" and not (tmp_path / "o").exists()
