@@ -98,6 +98,27 @@ class ConfigLoader(yaml.SafeLoader):
         for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
     }
 
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        """The mapping of ``node``; a key written twice in it is a ConstructorError at the second one (YAML
+        forbids it, and PyYAML would silently keep the last: a section written twice lost the first's
+        keys). Keys a merge (``<<: *base``) brings may be overridden, as YAML says."""
+        if isinstance(node, yaml.MappingNode):
+            seen: set[Any] = set()
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=deep)
+                try:
+                    duplicate = key in seen
+                    seen.add(key)
+                except TypeError:  # (an unhashable key: the base constructor says so)
+                    continue
+                if duplicate:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"key {shown(key, 40)} is written twice", key_node.start_mark
+                    )
+        return super().construct_mapping(node, deep=deep)
+
     def construct_object(self, node: yaml.Node, deep: bool = False) -> Any:
         """The value of ``node``; any error of a constructor is a ConstructorError naming the node's position
         (ValueError and OverflowError of bad values, AttributeError of PyYAML's timestamp constructor on

@@ -48,6 +48,15 @@ def test_yaml_round_trip(tmp_path) -> None:
             "input:\n  carmen_range_max_m: 0.01\n  carmen_range_min_m: 5\n",
             r"carmen_range_min_m \(5\) must be below carmen_range_max_m \(0\.01\)",
         ),
+        # YAML forbids a key twice; PyYAML kept the last (a section written twice lost the first's keys)
+        (
+            "mapping:\n  resolution_m: 0.3\nmapping:\n  mapper: gpfol\n",
+            r"line 3, column 1: key 'mapping' is written twice",
+        ),
+        (
+            "mapping:\n  resolution_m: 0.3\n  resolution_m: 0.2\n",
+            r"line 3, column 3: key 'resolution_m' is written twice",
+        ),
     ],
     ids=[
         "unknown-key",
@@ -59,6 +68,8 @@ def test_yaml_round_trip(tmp_path) -> None:
         "moved-nested-key",
         "girard-needs-se",
         "carmen-range-limits-reversed",
+        "section-twice",
+        "key-twice",
     ],
 )
 def test_bad_config_is_rejected_with_one_line(tmp_path, text: str, message: str) -> None:
