@@ -112,6 +112,16 @@ class MapBuilder:
 
     # -- GPPOL inputs -----------------------------------------------------------------------------------
 
+    def check_sources(self, source_names: tuple[str, ...] | list[str], where: str) -> None:
+        """ConfigError when ``mapping.sources`` names a source that is none of ``source_names`` (the
+        recording ``where``'s scan sources): its noise would silently go unused."""
+        unknown = [name for name in self.cfg.sources if name not in source_names]
+        if unknown:
+            raise ConfigError(
+                f"{where}: mapping.sources names {', '.join(repr(n) for n in unknown)}, which is no scan "
+                f"source of it (its sources: {', '.join(repr(n) for n in source_names)})"
+            )
+
     def sensor_noise(self, source_names: tuple[str, ...] | list[str]) -> list[SensorNoise]:
         """The laser noise of each source: ``cfg.sources[name]`` where named, else ``cfg.default_source``."""
         out = []

@@ -554,6 +554,7 @@ def evaluate_map(
     config = load_config(config_path, {"input": {"scan_topic": scan_topic}})
     cfg = config.mapping
     rec = open_dataset(input_path, config.input)
+    MapBuilder.from_config(cfg).check_sources(rec.scans.sources, str(input_path))
     base_poses, pose_source, cov, groups = mapping_poses(
         rec, input_path, config.slam, progress, cfg.gppol.pose_covariances, cfg.gppol.rigid_groups
     )

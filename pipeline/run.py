@@ -197,6 +197,7 @@ def run_pipeline(
     with timer("read"), progress.stage("read", total=1) as bar, stage_boundary("reading", input_path):
         rec = read_input(input_path, config)
         bar.advance()
+    MapBuilder.from_config(config.mapping).check_sources(rec.scans.sources, str(input_path))
     longest_return_m = scan_reach_m(rec.scans)
     if longest_return_m <= 0.0:
         raise PipelineError(

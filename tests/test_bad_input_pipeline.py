@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from datasets.errors import GpomError
+from datasets.errors import ConfigError, GpomError
 from mapping.build import MapBuilder
 from pipeline import run as run_module
 from pipeline.config import load_config
@@ -234,6 +234,24 @@ def test_a_log_without_any_return_is_one_line_before_slam(small_log, tmp_path, m
     with pytest.raises(PipelineError, match=rf"^{log}: no scan has a return .*: nothing to map$"):
         run_pipeline(log, tmp_path / "r", load_config(_config(tmp_path, {})))
     assert not (tmp_path / "r").exists()
+
+
+def test_laser_noise_of_a_source_the_recording_lacks_is_an_error_before_slam(
+    small_log, tmp_path, monkeypatch
+):
+    """mapping.sources naming a source the log does not have (a typo: 'scan' for the log's 'FLASER') was
+    ignored without a word, the default noise used; it is a one-line error right after reading."""
+    monkeypatch.setattr(run_module, "run_slam_recording", _fail)
+    cfg = _config(tmp_path, {"mapping": {"sources": {"scan": {"range_var_m2": 0.0004}}}})
+    with pytest.raises(
+        ConfigError, match=rf"^{small_log}: mapping.sources names 'scan', which is no scan source "
+    ):
+        run_pipeline(small_log, tmp_path / "r", load_config(cfg))
+    assert not (tmp_path / "r").exists()
+    proc = _cli("evaluate", "map", str(small_log), "--config", str(cfg), "--seed", "0")
+    _one_line_error(
+        proc, r"mapping\.sources names 'scan', which is no scan source of it \(its sources: 'FLASER'\)"
+    )
 
 
 # --- remap on damaged run folders --------------------------------------------------------------------------
