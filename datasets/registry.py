@@ -50,6 +50,8 @@ def guess_format(path: str | Path) -> str:
         raise UnknownFormatError(
             f"{p}: a folder that is neither a ROS 2 bag (no metadata.yaml) nor KITTI frames (no *.bin)"
         )
+    if not p.is_file():  # a FIFO (reading it would wait for a writer forever), a socket, a device
+        raise DatasetError(f"{p}: not a regular file (a pipe, socket or device): give a recording's file")
     suffixes = [s.lower() for s in p.suffixes]
     last = suffixes[-1] if suffixes else ""
     if last == ".bag":

@@ -190,6 +190,8 @@ def load_config(path: str | Path | None = None, overrides: dict[str, dict[str, A
     :class:`ConfigLoader`: a plain date-like value (``scan_topic: 2001-02-28``) is the string it looks like.
     """
     p = Path(path) if path is not None else DEFAULT_CONFIG_PATH
+    if p.exists() and not p.is_file() and not p.is_dir():  # (a FIFO would wait for a writer forever)
+        raise ConfigError(f"{p}: not a regular file (a pipe, socket or device), not a configuration file")
     try:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:

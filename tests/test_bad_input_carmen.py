@@ -303,3 +303,18 @@ def test_corrected_log_accepts_any_stamps(tmp_path: Path) -> None:
     assert rec.meta["restamped"]["laser"] == 1
     assert rec.scans.stamps_ns.tolist() == [10_000_000_000, 11_000_000_000, 12_000_000_000]
     assert rec.reference is not None
+
+
+def test_a_pipe_is_refused_not_waited_on(tmp_path: Path) -> None:
+    """A FIFO named like a log (or a configuration) blocked forever in open(); it is refused at once."""
+    import os
+
+    from datasets.errors import ConfigError
+    from pipeline.config import load_config
+
+    fifo = tmp_path / "in.clf"
+    os.mkfifo(fifo)
+    with pytest.raises(DatasetError, match=r"in\.clf: not a regular file \(a pipe, socket or device\)"):
+        open_dataset(fifo)
+    with pytest.raises(ConfigError, match=r"in\.clf: not a regular file"):
+        load_config(fifo)
