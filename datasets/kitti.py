@@ -57,7 +57,7 @@ def read_kitti(path: str | Path, cfg: InputConfig | None = None) -> Recording:
     frames = sorted(folder.glob("*.bin")) if path.is_dir() else [path]
     if not frames:
         raise KittiError(f"{path}: no KITTI frames (*.bin) in the folder")
-    index = np.array([_frame_index(f, k) for k, f in enumerate(frames)], dtype=np.int64)
+    frames, index = _numbered(frames)
 
     meta: dict = {"frames": [f.name for f in frames], "frame_index": index}
     times_file = _side_file(folder, "times")
@@ -217,14 +217,36 @@ class CloudScans(ScanSequence):
 # -------------------------------------------------------------------------------------------- side files
 
 
-def _frame_index(frame: Path, position: int) -> int:
-    """The frame number of ``000123.bin`` (its line in times / poses files); position if not a number."""
+def _frame_number(frame: Path) -> int | None:
+    """The frame number of ``000123.bin`` (its line in times / poses files); None if not a number."""
     stem = frame.stem
     if not (stem.isascii() and stem.isdigit()):
-        return position
+        return None
     if len(stem.lstrip("0")) > 15:
         raise KittiError(f"{frame}: frame number {shown(stem, bare=True)} is out of range")
     return int(stem)
+
+
+def _numbered(frames: list[Path]) -> tuple[list[Path], NDArray[np.int64]]:
+    """The frames in the order of their numbers, and those numbers (N,); frames of which none is named by a
+    number take their positions in name order. KittiError for a folder that mixes the two (``frame3.bin``
+    beside ``000004.bin``) or names two frames by one number (``5.bin``, ``005.bin``)."""
+    numbers = [_frame_number(f) for f in frames]
+    if all(n is None for n in numbers):
+        return frames, np.arange(len(frames), dtype=np.int64)
+    unnumbered = [f for f, n in zip(frames, numbers, strict=True) if n is None]
+    if unnumbered:
+        raise KittiError(
+            f"{unnumbered[0]}: not named by a frame number like the other frames of its folder (000123.bin)"
+        )
+    order = sorted(range(len(frames)), key=lambda k: numbers[k])
+    frames = [frames[k] for k in order]
+    index = np.array([numbers[k] for k in order], dtype=np.int64)
+    twice = np.flatnonzero(index[1:] == index[:-1])
+    if twice.size:
+        k = int(twice[0])
+        raise KittiError(f"{frames[k + 1]}: frame {index[k]} is also {frames[k].name}")
+    return frames, index
 
 
 def _side_file(folder: Path, prefix: str) -> Path | None:

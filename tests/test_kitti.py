@@ -161,3 +161,18 @@ def test_bad_inputs(tmp_path: Path, kitti_dir: Path) -> None:
         open_dataset(empty)
     with pytest.raises(DatasetError, match="no KITTI frames"):
         read_kitti(empty)
+
+
+def test_frames_are_ordered_and_checked_by_their_numbers(tmp_path: Path, kitti_dir: Path) -> None:
+    """Unpadded numbers read in number order (9 before 10); a frame not named by a number among numbered
+    ones, or two names of one number, is named in the error (it was 'frame 5 is not after frame 5')."""
+    for name in ("9.bin", "10.bin"):
+        shutil.copy(kitti_dir / "000000.bin", tmp_path / name)
+    rec = read_kitti(tmp_path)
+    assert rec.meta["frames"] == ["9.bin", "10.bin"] and rec.meta["frame_index"].tolist() == [9, 10]
+    shutil.copy(kitti_dir / "000001.bin", tmp_path / "frame3.bin")
+    with pytest.raises(DatasetError, match=r"frame3\.bin: not named by a frame number like the other"):
+        read_kitti(tmp_path)
+    (tmp_path / "frame3.bin").rename(tmp_path / "009.bin")
+    with pytest.raises(DatasetError, match=r"9\.bin: frame 9 is also 009\.bin$"):
+        read_kitti(tmp_path)
