@@ -91,12 +91,26 @@ def check_output_dir(
     reason = probe_writable(ancestor)
     if reason is not None:
         raise PipelineError(f"{out_dir}: cannot write into {ancestor} ({reason})")
+    longest = len(f"{out_dir.name}.replaced-{2**22}".encode())  # the staging names (pids up to 2^22)
+    if longest > _name_max(ancestor):
+        raise PipelineError(
+            f"{out_dir}: a name of {len(out_dir.name.encode())} bytes is too long for its staging folder "
+            f"(at most {_name_max(ancestor) - (longest - len(out_dir.name.encode()))} bytes)"
+        )
     free = shutil.disk_usage(ancestor).free
     if free < min_free_bytes:
         raise PipelineError(
             f"{out_dir}: only {free / 2**20:.0f} MiB free on the disk of {ancestor} "
             f"(a run needs at least {min_free_bytes / 2**20:.0f} MiB)"
         )
+
+
+def _name_max(folder: Path) -> int:
+    """The longest file name (bytes) the file system of ``folder`` takes (255 where it does not say)."""
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError):
+        return 255
 
 
 def _check_replaceable(out_dir: Path, reads: Iterable[Path | None]) -> None:

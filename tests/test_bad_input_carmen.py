@@ -318,3 +318,29 @@ def test_a_pipe_is_refused_not_waited_on(tmp_path: Path) -> None:
         open_dataset(fifo)
     with pytest.raises(ConfigError, match=r"in\.clf: not a regular file"):
         load_config(fifo)
+
+
+def test_convert_and_simulate_check_the_output_folder_is_writable_first(tmp_path: Path, monkeypatch) -> None:
+    """An output folder that cannot be written into (permissions, a read-only disk) failed after the input
+    was read, or the world made, with a message of the catch-all handler; it is now refused first."""
+    import tempfile
+
+    import pipeline.convert as convert_module
+    from datasets.simulation import output as simulation_output
+
+    def denied(*_args, **_kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    def never(*_args, **_kwargs):
+        raise AssertionError("read before the output was checked")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", denied)
+    monkeypatch.setattr(convert_module, "open_dataset", never)
+    monkeypatch.setattr(simulation_output, "make_world", never)
+    log = tmp_path / "in.clf"
+    log.write_text("FLASER 3 1.0 1.0 1.0 0 0 0 0 0 0 1.0 host 1.0\n")
+    with pytest.raises(DatasetError, match=rf"out\.bag: cannot write into {tmp_path} \(Permission denied\)"):
+        convert_module.convert_recording(log, tmp_path / "out.bag")
+    with pytest.raises(DatasetError, match=r"sim\.mcap: cannot write into .*\(Permission denied\)"):
+        simulation_output.simulate("loop", tmp_path / "sim.mcap")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.clf"]

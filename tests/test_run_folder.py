@@ -106,3 +106,11 @@ def test_overwrite_never_deletes_what_the_run_reads_nor_other_files(tmp_path) ->
     write_summary(run, {})
     check_output_dir(run, overwrite=True, reads=[log, data])
     check_output_dir(data / "remap", overwrite=True, reads=[data])  # a new folder inside what it reads
+
+
+def test_a_name_too_long_for_the_staging_folder_fails_before_any_work(tmp_path) -> None:
+    """A legal 250-byte --out name became too long once '.partial-PID' was added: an OSError of the
+    catch-all handler after the work. It is refused first, saying how long a name may be."""
+    check_output_dir(tmp_path / ("a" * 230), overwrite=False)
+    with pytest.raises(PipelineError, match=r"a name of 250 bytes is too long for its staging folder"):
+        check_output_dir(tmp_path / ("a" * 250), overwrite=False)

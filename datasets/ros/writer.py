@@ -89,13 +89,19 @@ def bag_kind_of_path(path: Path) -> tuple[BagKind, str]:
 
 
 def check_output_path(path: Path) -> tuple[BagKind, str]:
-    """Refuse an existing output or a missing parent folder (one line); returns :func:`bag_kind_of_path`."""
+    """Refuse an existing output, a missing parent folder or one that cannot be written into (one line);
+    returns :func:`bag_kind_of_path`."""
     path = Path(path)
     kind = bag_kind_of_path(path)
     if path.exists() or path.is_symlink():
         raise DatasetError(f"{path}: exists already; not overwriting it (remove it or choose another name)")
     if not path.parent.is_dir():
         raise DatasetError(f"{path}: the folder {path.parent} does not exist")
+    try:  # a real probe: permissions, read-only file systems and ACLs all count
+        with tempfile.TemporaryFile(dir=path.parent, prefix=".gpom-write-probe-"):
+            pass
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot write into {path.parent} ({exc.strerror or exc})") from None
     return kind
 
 

@@ -35,9 +35,10 @@ def simulate(world: str, out: str | Path, seed: int = 0, progress: Any = None) -
             raise DatasetError(f"{p}: already exists; will not overwrite it")
     if not out.parent.is_dir():
         raise DatasetError(f"{out.parent}: no such output directory")
-    run = make_world(world, seed)
+    from datasets.rosbag import check_output_path, write_recording
 
-    from datasets.rosbag import write_recording
+    check_output_path(out)  # (the bag's name and a writable folder, before the world is made)
+    run = make_world(world, seed)
 
     write_recording(run.recording, out, progress=progress)
     try:
