@@ -394,17 +394,34 @@ def _in_finaliser(frame: Any) -> bool:
     return False
 
 
+def _send_again(signum: int) -> None:
+    """Send ``signum`` to this process again shortly, from a thread: it is raised once the finaliser or
+    callback it landed in has returned."""
+    timer = threading.Timer(0.02, os.kill, (os.getpid(), signum))
+    timer.daemon = True
+    timer.start()
+
+
 def _on_signal(signum: int, frame: Any) -> None:
     from pipeline.run_folder import note_interrupt
 
     note_interrupt(signum)  # kept even if Python drops the exception below (raised inside a callback)
     if _in_finaliser(frame):
-        # sent again shortly, from a thread: raised once the finaliser has returned
-        timer = threading.Timer(0.02, os.kill, (os.getpid(), signum))
-        timer.daemon = True
-        timer.start()
+        _send_again(signum)
         return
     raise Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
+def _on_unraisable(unraisable: Any) -> None:
+    """``sys.unraisablehook``: an interrupt raised where Python drops exceptions (a weakref callback, e.g.
+    ``WeakKeyDictionary``'s) would print a traceback and be lost; it is sent again instead, quietly (the
+    signal is recorded, see :func:`_on_signal`). Anything else goes to the default hook."""
+    from pipeline.run_folder import pending_interrupt
+
+    if isinstance(unraisable.exc_value, KeyboardInterrupt) and pending_interrupt() is not None:
+        _send_again(pending_interrupt())
+        return
+    sys.__unraisablehook__(unraisable)
 
 
 def _install_handlers() -> dict[int, Any]:
@@ -436,6 +453,9 @@ def main(argv: list[str] | None = None) -> int:
     note_interrupt(None)
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = _install_handlers() if in_main_thread else {}
+    unraisable_hook = sys.unraisablehook
+    if in_main_thread:
+        sys.unraisablehook = _on_unraisable
     try:
         status = _dispatch(args)
     except GpomError as exc:
@@ -444,8 +464,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except Terminated:
         return _interrupted(signal.SIGTERM)
-    except KeyboardInterrupt:
-        return _interrupted(signal.SIGINT)
+    except KeyboardInterrupt:  # (also a SIGTERM that a finaliser swallowed and the run folder raised again)
+        return _interrupted(pending_interrupt() or signal.SIGINT)
     except Exception:
         # a signal's exception raised inside a C callback comes back wrapped (numba's cache loader:
         # "SystemError: ... returned a result with an exception set"); the recorded signal still decides
@@ -454,6 +474,7 @@ def main(argv: list[str] | None = None) -> int:
             raise
         return _interrupted(pending)
     finally:
+        sys.unraisablehook = unraisable_hook
         for signum, handler in previous.items():
             signal.signal(signum, handler)
         signum = pending_interrupt()

@@ -546,3 +546,52 @@ def test_a_signal_inside_a_finaliser_is_raised_after_it(capsys) -> None:
         signal.signal(signal.SIGINT, previous)
         note_interrupt(None)
     assert "Exception ignored" not in capsys.readouterr().err
+
+
+def test_a_signal_inside_a_weakref_callback_is_raised_after_it_without_a_traceback(
+    monkeypatch, capsys
+) -> None:
+    """A Ctrl-C during the export landed in ``WeakKeyDictionary``'s callback (the second sweep: 5 of 16
+    runs printed "Exception ignored in: ... KeyboardInterrupt" with a traceback): the unraisable hook sends
+    it again, quietly, and it is raised in the code the callback interrupted. A SIGTERM whose exception a
+    callback swallowed ends as a SIGTERM (143, "terminated"), not as Ctrl-C."""
+    import os
+    import signal
+    import sys
+    import time
+    import weakref
+
+    import run
+    from pipeline.run_folder import note_interrupt
+
+    class Target:
+        pass
+
+    def callback(_ref) -> None:
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(10_000):  # bytecode boundaries inside the callback, where the handler runs
+            pass
+
+    previous = signal.signal(signal.SIGINT, run._on_signal)
+    monkeypatch.setattr(sys, "unraisablehook", run._on_unraisable)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            target = Target()
+            ref = weakref.ref(target, callback)
+            del target
+            end = time.monotonic() + 5.0
+            while time.monotonic() < end:  # the signal is raised here
+                pass
+        assert ref() is None
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        note_interrupt(None)
+    assert "Exception ignored" not in capsys.readouterr().err
+
+    def terminated_in_a_callback(args, emit_json):
+        note_interrupt(signal.SIGTERM)
+        raise KeyboardInterrupt  # (as staged_run_folder raises a pending interrupt)
+
+    monkeypatch.setattr("pipeline.commands.dispatch", terminated_in_a_callback)
+    assert run.main(["bench"]) == 143
+    assert capsys.readouterr().err.strip() == "terminated"
