@@ -398,6 +398,7 @@ def make_summary(
         "loop closures (accepted / rejected)": (
             f"{s['loop_closures_accepted']} / {s['loop_closures_rejected']}"
         ),
+        "scans without a scan match (placed by prediction)": f"{s['odometry_fallbacks']} of {s['scans']}",
         "ATE before / after loop closure (m)": "-"
         if ate is None
         else f"{ate['before']:.3f} / {ate['after']:.3f}",

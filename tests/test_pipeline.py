@@ -116,6 +116,8 @@ def check_run_folder(out: Path) -> dict:
         for value, key in ((100, "occupied"), (0, "free"), (-1, "unknown")):
             assert shares[key] == pytest.approx(np.mean(values == value), abs=1e-12)
         assert f"cells occupied / free / unknown, {which} (%)" in summary["table"]
+    unmatched = summary["table"]["scans without a scan match (placed by prediction)"]
+    assert unmatched == f"{summary['slam']['odometry_fallbacks']} of {summary['counts']['scans']}"
     with np.load(out / "trajectory/covariances.npz") as z:
         n = summary["counts"]["scans"]
         for key in ("scan_before", "scan_after", "scan_relative_before", "scan_relative_after"):
