@@ -83,14 +83,7 @@ def check_output_dir(
         raise PipelineError(f"{out_dir}: exists and is not a folder")
     if out_dir.exists():
         _check_replaceable(out_dir, reads)
-    ancestor = out_dir.absolute().parent
-    while not ancestor.exists() and ancestor != ancestor.parent:
-        ancestor = ancestor.parent
-    if not ancestor.is_dir():
-        raise PipelineError(f"{out_dir}: cannot be created ({ancestor} is not a folder)")
-    reason = probe_writable(ancestor)
-    if reason is not None:
-        raise PipelineError(f"{out_dir}: cannot write into {ancestor} ({reason})")
+    ancestor = writable_ancestor(out_dir)
     longest = len(f"{out_dir.name}.replaced-{2**22}".encode())  # the staging names (pids up to 2^22)
     if longest > _name_max(ancestor):
         raise PipelineError(
@@ -103,6 +96,20 @@ def check_output_dir(
             f"{out_dir}: only {free / 2**20:.0f} MiB free on the disk of {ancestor} "
             f"(a run needs at least {min_free_bytes / 2**20:.0f} MiB)"
         )
+
+
+def writable_ancestor(path: Path) -> Path:
+    """The nearest existing folder above ``path``, in which a file can be created (:func:`probe_writable`);
+    PipelineError naming ``path`` if it is no folder or cannot be written into."""
+    ancestor = Path(path).absolute().parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise PipelineError(f"{path}: cannot be created ({ancestor} is not a folder)")
+    reason = probe_writable(ancestor)
+    if reason is not None:
+        raise PipelineError(f"{path}: cannot write into {ancestor} ({reason})")
+    return ancestor
 
 
 def _name_max(folder: Path) -> int:

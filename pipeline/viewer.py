@@ -50,7 +50,7 @@ from pipeline.artifacts import (
     read_scans,
 )
 from pipeline.errors import PipelineError
-from pipeline.run_folder import probe_writable, read_summary
+from pipeline.run_folder import read_summary, writable_ancestor
 from slam.trajectory_io import read_tum
 
 APPLICATION_ID = "gpom"
@@ -268,14 +268,7 @@ def check_rerun_path(rrd_path: Path, overwrite: bool = False, reads: tuple[Path 
             raise PipelineError(f"{rrd_path}: already exists (use --overwrite to replace it)")
         if any(read is not None and Path(read).resolve() == rrd_path.resolve() for read in reads):
             raise PipelineError(f"{rrd_path}: is what this command reads; --overwrite would replace it")
-    ancestor = rrd_path.absolute().parent
-    while not ancestor.exists() and ancestor != ancestor.parent:
-        ancestor = ancestor.parent
-    if not ancestor.is_dir():
-        raise PipelineError(f"{rrd_path}: cannot be created ({ancestor} is not a folder)")
-    reason = probe_writable(ancestor)
-    if reason is not None:
-        raise PipelineError(f"{rrd_path}: cannot write into {ancestor} ({reason})")
+    writable_ancestor(rrd_path)
 
 
 def write_rerun(run_dir: Path, rrd_path: Path, ellipse_every: int | None = None) -> Path:

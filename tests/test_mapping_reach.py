@@ -159,6 +159,13 @@ def test_reach_mask_keeps_every_place_within_reach_and_drops_the_far_ones() -> N
         reach_mask(starts, ends, np.full(300, np.nan))
 
 
+def _grid_around(gp: GPOccupancyMap, margin_m: float, step_m: float) -> np.ndarray:
+    """(Q, 2) points every ``step_m`` over the map's data bounds grown by ``margin_m``."""
+    x0, y0, x1, y1 = gp.bounds_xy_m(margin_m=margin_m)
+    gx, gy = np.meshgrid(np.arange(x0, x1, step_m), np.arange(y0, y1, step_m))
+    return np.column_stack([gx.ravel(), gy.ravel()])
+
+
 @pytest.fixture(scope="module")
 def intel_beams():
     path = data_file("intel/intel.gfs.log")
@@ -195,9 +202,7 @@ def test_map_with_reach_equals_the_map_solved_everywhere(
     with_reach = GPOccupancyMap(beams, params, 15, 15, inputs=inputs)
     solved = GPOccupancyMap(beams, params, 15, 15, inputs=inputs)
     solved._reach, solved._reach_done = None, True  # every query solved
-    x0, y0, x1, y1 = with_reach.bounds_xy_m(margin_m=25.0)
-    gx, gy = np.meshgrid(np.arange(x0, x1, 0.21), np.arange(y0, y1, 0.21))
-    q = np.column_stack([gx.ravel(), gy.ravel()])
+    q = _grid_around(with_reach, 25.0, 0.21)
     far = ~with_reach.reach().contains(q)
     assert 0.2 < far.mean() < 0.95
     a, b = with_reach.query(q), solved.query(q)
@@ -232,9 +237,7 @@ def test_metres_uncertain_scans_mark_nothing_and_leave_the_map_as_solved_everywh
     unfloored = gp_map()
     unfloored.reach()
     monkeypatch.undo()
-    x0, y0, x1, y1 = floored.bounds_xy_m(margin_m=25.0)
-    gx, gy = np.meshgrid(np.arange(x0, x1, 0.21), np.arange(y0, y1, 0.21))
-    q = np.column_stack([gx.ravel(), gy.ravel()])
+    q = _grid_around(floored, 25.0, 0.21)
     near, near_unfloored = floored.reach().contains(q), unfloored.reach().contains(q)
     assert not (near & ~near_unfloored).any()
     assert near.mean() < 0.8 * near_unfloored.mean()
@@ -314,9 +317,7 @@ def test_a_reach_of_the_unknown_fraction_changes_no_places_class(intel_beams, ga
 
     tight, floor, solved = gp_map(fraction), gp_map(None), gp_map(None)
     solved._reach, solved._reach_done = None, True
-    x0, y0, x1, y1 = tight.bounds_xy_m(margin_m=5.0)
-    gx, gy = np.meshgrid(np.arange(x0, x1, 0.07), np.arange(y0, y1, 0.07))
-    q = np.column_stack([gx.ravel(), gy.ravel()])
+    q = _grid_around(tight, 5.0, 0.07)
     near, near_floor = tight.reach().contains(q), floor.reach().contains(q)
     assert not (near & ~near_floor).any()
     assert near.sum() < 0.9 * near_floor.sum()
