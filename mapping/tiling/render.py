@@ -106,7 +106,7 @@ def render_batched(job: RenderJob, tiles: Iterable[int]) -> Iterator[TileResult]
     """The tiles' cells queried on one map of all of ``job``'s beams, :data:`BATCH_CELLS` cells at a time.
     A tile's support holds every beam its cells' neighbour searches can find, so this is the map that
     :func:`render_per_tile` gives, except that a cell beyond the reach of every input of a tile's support
-    reads the prior there and may be solved here (to the reach test's tolerance, :mod:`mapping.reach`).
+    reads the prior there and may be solved here (unknown either way, :mod:`mapping.reach`).
     No tile has a support of its own here: the results carry NaN radii and 0 support beams, and
     :class:`mapping.tiling.IncrementalMap` computes the radii when an update first needs them (a map that
     is only written out never pays for them)."""
