@@ -77,7 +77,10 @@ def check_map_cells(bounds: Bounds, resolution_m: float, max_cells: int, what: s
     """PipelineError, before any allocation, when a map over ``bounds`` at ``resolution_m`` would have more
     than ``max_cells`` cells (``scale.max_map_cells``); ``what`` says which map (and how its bounds were
     found) in the message."""
-    width, height = map_cells(bounds, resolution_m)
+    try:
+        width, height = map_cells(bounds, resolution_m)
+    except PipelineError as exc:  # (bounds beyond every float: say which map, and so which option)
+        raise PipelineError(f"{what}: {exc}") from None
     if width * height > max_cells:
         size_x, size_y = bounds[2] - bounds[0], bounds[3] - bounds[1]
         raise PipelineError(

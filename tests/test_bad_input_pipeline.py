@@ -118,6 +118,10 @@ def test_cli_remap_over_huge_bounds_is_one_line_before_reading(small_run, tmp_pa
     flag = r"the remap with --bounds -1e6,-1e6,1e6,1e6: "
     _one_line_error(proc, flag + r"2e\+06 x 2e\+06 m at 0\.1 m is .* cells, above scale\.max_map_cells")
     assert not (tmp_path / "m").exists()
+    # bounds whose size no float holds: the message still names the option (it named neither)
+    proc = _cli("remap", str(small_run), "--bounds=-1e308,-1e308,1e308,1e308", "--out", str(tmp_path / "m"))
+    _one_line_error(proc, r"the remap with --bounds -1e308,-1e308,1e308,1e308: a map over .* than any float")
+    assert not (tmp_path / "m").exists()
 
 
 def test_remap_checks_the_size_before_reading_the_scans(small_run, tmp_path, monkeypatch) -> None:
