@@ -140,7 +140,8 @@ def _add_rerun(p: argparse.ArgumentParser) -> None:
         "--rerun",
         type=Path,
         metavar="FILE.rrd",
-        help="also write a Rerun recording of the finished run folder to FILE.rrd (open it: rerun FILE.rrd)",
+        help="also write a Rerun recording of the finished run folder to FILE.rrd, checked before the run "
+        "(an existing FILE.rrd is replaced only with --overwrite; open it: rerun FILE.rrd)",
     )
 
 
