@@ -102,7 +102,10 @@ class PoseGraph:
         self._edge_table = EdgeTable()
         self._loop_factor_index: dict[int, int] = {}
         self._n = 0
-        self._estimate: gtsam.Values | None = None
+        # the estimate after the last update, computed when first read (``_stale`` until then): a keyframe
+        # added incrementally needs only its own pose, and the whole estimate grows with the graph
+        self._estimate_values: gtsam.Values | None = None
+        self._stale = False
 
     def __len__(self) -> int:
         return self._n
@@ -160,6 +163,19 @@ class PoseGraph:
         g._estimate = g._new_values
         return g
 
+    @property
+    def _estimate(self) -> gtsam.Values | None:
+        """The current estimate of every keyframe (None before the first update)."""
+        if self._stale:
+            self._estimate_values = self._isam.calculateEstimate()
+            self._stale = False
+        return self._estimate_values
+
+    @_estimate.setter
+    def _estimate(self, values: gtsam.Values | None) -> None:
+        self._estimate_values = values
+        self._stale = False
+
     def _add(self, factor: gtsam.NonlinearFactor, edge: Edge) -> None:
         self._new_factors.add(factor)
         self.graph.add(factor)
@@ -177,12 +193,18 @@ class PoseGraph:
             self._restart_with_qr()
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
-        self._estimate = self._isam.calculateEstimate()
+        self._stale = True
 
     def _restart_with_qr(self) -> None:
         """A new iSAM2 on the QR factorisation holding every factor, from the last estimate."""
         values = gtsam.Values()
-        known = self._estimate
+        known = self._estimate_values
+        if self._stale:  # the last good estimate was never read: iSAM2 still holds it for the earlier keys
+            try:
+                known = self._isam.calculateEstimate()
+            except RuntimeError:
+                pass
+            self._stale = False
         for key in range(self._n):
             if known is not None and known.exists(key):
                 values.insert(key, known.atPose2(key))
@@ -202,9 +224,15 @@ class PoseGraph:
         return _values_to_array(self._estimate, self._n)
 
     def estimate_of(self, key: int) -> FloatArray:
-        if self._estimate is None:
-            self.update()
-        p = self._estimate.atPose2(key)
+        """(3,) current estimate of keyframe ``key`` (from iSAM2 alone when the whole estimate is not
+        needed: the same value)."""
+        if self._stale:
+            p = self._isam.calculateEstimatePose2(key)
+        else:
+            if self._estimate is None:
+                self.update()
+                return self.estimate_of(key)
+            p = self._estimate.atPose2(key)
         return np.array([p.x(), p.y(), p.theta()])
 
     def _with_qr_retry(self, query):

@@ -254,3 +254,22 @@ def test_relative_covariance_fuses_a_closure_with_the_chain() -> None:
     np.testing.assert_allclose(
         closed.relative_covs_body([1, 3], 5)[1], closed.relative_covs_body([3], 5)[0], rtol=1e-9, atol=1e-15
     )
+
+
+def test_one_keyframes_estimate_equals_its_row_of_the_whole_estimate() -> None:
+    """An incremental update leaves the whole estimate to be computed when read; one keyframe's pose, read
+    before it, is the same value to the bit, through a closure and a relinearisation too."""
+    g = PoseGraph()
+    g.add_pose(SQUARE[0])
+    g.add_prior(0, SQUARE[0], PRIOR_COV)
+    for i, p in enumerate(_perturbed()[1:], start=1):
+        g.add_pose(p)
+        g.add_between("odometry", i - 1, i, np.array([2.0, 0.0, np.pi / 2]), ODO_COV)
+        g.update()
+        one = [g.estimate_of(k) for k in range(i + 1)]
+        np.testing.assert_array_equal(np.stack(one), g.estimate())
+    g.add_between("loop", 4, 1, np.array([2.0, 0.0, np.pi / 2]), ODO_COV)
+    g.update(extra_iterations=1)
+    last = g.estimate_of(4)
+    np.testing.assert_array_equal(last, g.estimate()[4])
+    assert np.allclose(g.optimize_batch()[4], SQUARE[4], atol=1e-6)
