@@ -114,23 +114,32 @@ class LoopCloser:
         self.path_m = se2.path_length_m(poses[:, :2]) if len(poses) else np.zeros(1)
         self._targets: OrderedDict[int, PointGrid] = OrderedDict()
         self._pyramids: dict[int, ScorePyramid] = {}
-        self._normals: dict[int, FloatArray] = {}
+        # per scan, its points within map_range_m of the laser and (once a target map needs them) their
+        # normals: a scan serves the maps of several targets
+        self._near_points: dict[int, tuple[FloatArray, FloatArray | None]] = {}
         self._usable = np.isin(odometry.status, (FIRST, MATCHED))
 
     # -- maps ---------------------------------------------------------------------------------------------
 
-    def _scan_normals(self, s: int) -> FloatArray:
-        n = self._normals.get(s)
-        if n is None:
-            oc = self.odo_cfg
-            n = scan_normals(
-                self.odo.points_base[s],
-                oc.normal_radius_m,
-                oc.normal_max_neighbours,
-                radius_per_m=oc.normal_radius_per_m,
-            )
-            self._normals[s] = n
-        return n
+    def _scan_near(self, s: int, normals: bool) -> tuple[FloatArray, FloatArray | None]:
+        """Scan ``s``'s points within ``map_range_m`` of its laser (:meth:`_near`), (P, 2) in its base frame,
+        and with ``normals`` their (P, 2) normals (from the whole scan's neighbours), else None (cached)."""
+        got = self._near_points.get(s)
+        if got is None or (normals and got[1] is None):
+            near = self._near(s)
+            pts = self.odo.points_base[s][near] if got is None else got[0]
+            nrm = None
+            if normals:
+                oc = self.odo_cfg
+                nrm = scan_normals(
+                    self.odo.points_base[s],
+                    oc.normal_radius_m,
+                    oc.normal_max_neighbours,
+                    radius_per_m=oc.normal_radius_per_m,
+                )[near]
+            got = (pts, nrm)
+            self._near_points[s] = got
+        return got
 
     def _scans_between(self, k_first: int, k_last: int) -> NDArray[np.int64]:
         """Scan indices from keyframe ``k_first`` to the scan before keyframe ``k_last + 1``."""
@@ -147,9 +156,9 @@ class LoopCloser:
         if len(scans) == 0:
             return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2))
         rel = se2.between(self.odo.poses_xytheta[anchor_scan], self.odo.poses_xytheta[scans])
-        near = [self._near(int(s)) for s in scans]
-        counts = np.array([int(m.sum()) for m in near])
-        pts = np.concatenate([self.odo.points_base[s][m] for s, m in zip(scans, near, strict=True)])
+        near = [self._scan_near(int(s), normals) for s in scans]
+        counts = np.array([p.shape[0] for p, _ in near])
+        pts = np.concatenate([p for p, _ in near])
         per_point = np.repeat(rel, counts, axis=0)
         c, s_ = np.cos(per_point[:, 2]), np.sin(per_point[:, 2])
 
@@ -161,7 +170,7 @@ class LoopCloser:
         origins = np.repeat(origins, counts, axis=0)
         if not normals:
             return out, None, origins
-        nrm = np.concatenate([self._scan_normals(int(s))[m] for s, m in zip(scans, near, strict=True)])
+        nrm = np.concatenate([n for _, n in near])
         return out, rotate(nrm), origins
 
     def _near(self, s: int) -> NDArray[np.bool_]:
