@@ -199,7 +199,8 @@ class PoseGraph:
         """A new iSAM2 on the QR factorisation holding every factor, from the last estimate."""
         values = gtsam.Values()
         known = self._estimate_values
-        if self._stale:  # the last good estimate was never read: iSAM2 still holds it for the earlier keys
+        if self._stale:  # the last estimate was never read: the failed iSAM2 still gives one (its
+            # linearisation point moved by its last solved delta)
             try:
                 known = self._isam.calculateEstimate()
             except RuntimeError:
