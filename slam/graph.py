@@ -227,13 +227,12 @@ class PoseGraph:
     def estimate_of(self, key: int) -> FloatArray:
         """(3,) current estimate of keyframe ``key`` (from iSAM2 alone when the whole estimate is not
         needed: the same value)."""
+        if self._estimate_values is None and not self._stale:
+            self.update()
         if self._stale:
             p = self._isam.calculateEstimatePose2(key)
         else:
-            if self._estimate is None:
-                self.update()
-                return self.estimate_of(key)
-            p = self._estimate.atPose2(key)
+            p = self._estimate_values.atPose2(key)
         return np.array([p.x(), p.y(), p.theta()])
 
     def _with_qr_retry(self, query):
