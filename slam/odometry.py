@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numba as nb
@@ -143,6 +144,16 @@ def scan_points_at(
     )
 
 
+def sensor_reach_m(points_base: Sequence[FloatArray]) -> float:
+    """The farthest of the (P_i, 2) base-frame points of any scan from its base (m; 0 without points): how
+    far a submap must reach around the pose it is centred on."""
+    reach2 = 0.0
+    for pts in points_base:
+        if len(pts):
+            reach2 = max(reach2, float(np.max(np.einsum("ij,ij->i", pts, pts))))
+    return math.sqrt(reach2)
+
+
 # the widest spacing along the scan that match_subset tries (Cartographer's adaptive voxel filter: 0.5 m)
 MAX_MATCH_SPACING_M = 0.5
 
@@ -222,14 +233,21 @@ def wheel_increment_cov(inc_xytheta: FloatArray, cfg: OdometryConfig) -> FloatAr
 
 
 class _Submaps:
-    """Two overlapping submap grids; scans are matched against the older one. Grids are recycled."""
+    """Two overlapping submap grids; scans are matched against the older one. Grids are recycled.
 
-    def __init__(self, cfg: OdometryConfig) -> None:
+    A grid is centred on the first pose inserted into it and reaches ``reach_m`` (the farthest point the
+    scans can hold, :func:`sensor_reach_m`) plus 5 m of travel. Sized by the sensor's reach rather than by
+    ``max_range_m`` alone, a short-range scanner gets grids of a few megabytes instead of ones sized for the
+    configured range, and a grid's rows stay short, so the cells one scan reads lie closer in memory.
+    """
+
+    def __init__(self, cfg: OdometryConfig, reach_m: float | None = None) -> None:
         self.cfg = cfg
         self.grids: list[PointGrid] = []
         self.counts: list[int] = []
         self._pool: list[PointGrid] = []
-        self.half_size_m = cfg.max_range_m + 5.0
+        reach = cfg.max_range_m if reach_m is None else min(cfg.max_range_m, reach_m)
+        self.half_size_m = reach + 5.0
 
     @property
     def target(self) -> PointGrid | None:
@@ -446,7 +464,7 @@ def run_odometry(
     inserted when it moved enough). Returns an :class:`OdometryResult`.
     """
     n = len(points_base)
-    odometer = _Odometer(n, wheel_poses_xytheta, cfg)
+    odometer = _Odometer(n, wheel_poses_xytheta, cfg, sensor_reach_m(points_base))
     chunk = max(1, n // 200)
     with stage(progress, "odometry", n) as bar:
         for i in range(n):
@@ -493,14 +511,20 @@ class _Registration:
 class _Odometer:
     """The state of :func:`run_odometry` while it walks the scans, and its steps."""
 
-    def __init__(self, n: int, wheel_poses_xytheta: FloatArray | None, cfg: OdometryConfig) -> None:
+    def __init__(
+        self,
+        n: int,
+        wheel_poses_xytheta: FloatArray | None,
+        cfg: OdometryConfig,
+        reach_m: float | None = None,
+    ) -> None:
         self.cfg = cfg
         self.poses = np.zeros((n, 3))
         self.covs = np.zeros((n, 3, 3))
         self.status = np.zeros(n, dtype=np.int8)
         self.inliers = np.zeros(n)
         self.rms = np.full(n, np.nan)
-        self.submaps = _Submaps(cfg)
+        self.submaps = _Submaps(cfg, reach_m)
         self.kiss = _KissRegistration(cfg) if cfg.matcher == "kiss_icp" else None
         self.wheel_inc: FloatArray | None = None
         if wheel_poses_xytheta is not None:

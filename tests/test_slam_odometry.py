@@ -407,3 +407,39 @@ def test_scans_outside_the_odometry_span_have_no_wheel_pose() -> None:
         se2.between(result.poses_xytheta[late][:-1], result.poses_xytheta[late][1:]),
     )
     assert np.hypot(steps[:, 0], steps[:, 1]).max() < 0.05
+
+
+def test_sensor_reach_is_the_farthest_point_of_any_scan() -> None:
+    pts = [np.array([[3.0, 4.0], [1.0, 0.0]]), np.zeros((0, 2)), np.array([[0.0, -5.5]])]
+    assert odometry.sensor_reach_m(pts) == pytest.approx(5.5)
+    assert odometry.sensor_reach_m([np.zeros((0, 2))]) == 0.0
+    cfg = OdometryConfig()
+    assert odometry._Submaps(cfg, 5.5).half_size_m == pytest.approx(10.5)
+    assert odometry._Submaps(cfg, 1e6).half_size_m == pytest.approx(cfg.max_range_m + 5.0)
+
+
+def test_submaps_sized_by_the_sensor_reach_register_as_before(monkeypatch) -> None:
+    """A 5.6 m Hokuyo (the lsm-demo bag, no wheels): grids sized by its reach, not by the configured
+    60 m, are a fraction of the cells and give the same poses and covariances bit for bit."""
+    rec = open_dataset(data_file("lsm-demo/demo_index_fixed.bag"))
+    cfg = OdometryConfig()
+    pts = scans_points_base(rec.scans, rec.laser_in_base_xytheta, cfg, 120)
+    reach_m = odometry.sensor_reach_m(pts)
+    grids = []
+    real_around = PointGrid.around
+
+    def around(*args, **kwargs):
+        grids.append(real_around(*args, **kwargs))
+        return grids[-1]
+
+    monkeypatch.setattr(PointGrid, "around", around)
+    sized = run_odometry(pts, None, cfg)
+    sized_cells = grids[0].shape[0]
+    monkeypatch.setattr(odometry, "sensor_reach_m", lambda _pts: np.inf)  # the configured range alone
+    wide = run_odometry(pts, None, cfg)
+    assert sized_cells * cfg.resolution_m == pytest.approx(2 * (reach_m + 5.0), abs=cfg.resolution_m)
+    assert grids[-1].shape[0] * cfg.resolution_m >= 2 * cfg.max_range_m
+    assert reach_m < 6.0
+    np.testing.assert_array_equal(sized.poses_xytheta, wide.poses_xytheta)
+    np.testing.assert_array_equal(sized.cov_xytheta, wide.cov_xytheta)
+    assert sized.status_counts()["matched"] == wide.status_counts()["matched"] > 100
