@@ -235,10 +235,12 @@ def wheel_increment_cov(inc_xytheta: FloatArray, cfg: OdometryConfig) -> FloatAr
 class _Submaps:
     """Two overlapping submap grids; scans are matched against the older one. Grids are recycled.
 
-    A grid is centred on the first pose inserted into it and reaches ``reach_m`` (the farthest point the
-    scans can hold, :func:`sensor_reach_m`) plus 5 m of travel. Sized by the sensor's reach rather than by
-    ``max_range_m`` alone, a short-range scanner gets grids of a few megabytes instead of ones sized for the
-    configured range, and a grid's rows stay short, so the cells one scan reads lie closer in memory.
+    A grid is centred on the first pose inserted into it. It reaches twice ``reach_m`` (the farthest point
+    the scans hold, :func:`sensor_reach_m`) plus 5 m, at most ``max_range_m`` plus 5 m: a point of a later
+    scan of the submap falls on it while that scan lies within the reach (plus 5 m) of the centre. Sized by
+    the sensor's reach, a short-range scanner's grids take a few megabytes instead of the tens that the
+    configured range calls for, and their rows are shorter, so the cells one scan reads lie closer in
+    memory.
     """
 
     def __init__(self, cfg: OdometryConfig, reach_m: float | None = None) -> None:
@@ -246,8 +248,16 @@ class _Submaps:
         self.grids: list[PointGrid] = []
         self.counts: list[int] = []
         self._pool: list[PointGrid] = []
-        reach = cfg.max_range_m if reach_m is None else min(cfg.max_range_m, reach_m)
-        self.half_size_m = reach + 5.0
+        # half a side: the sensor's reach around a pose up to as far again from the grid's centre (travel
+        # within one submap), never more than max_range_m + 5 m, the side of the grids before this rule
+        half_m = cfg.max_range_m + 5.0
+        if reach_m is not None:
+            half_m = min(half_m, 2.0 * reach_m + 5.0)
+        # cells a side, plus one where needed so that the cell edges fall where those of the widest grid
+        # would (a grid is centred on a pose): the same cells, only fewer of them
+        widest = math.ceil(2.0 * (cfg.max_range_m + 5.0) / cfg.resolution_m)
+        cells = math.ceil(2.0 * half_m / cfg.resolution_m)
+        self.cells = cells + (widest - cells) % 2
 
     @property
     def target(self) -> PointGrid | None:
@@ -260,9 +270,9 @@ class _Submaps:
                 grid = self._pool.pop()
                 grid.reset(pose[:2] - 0.5 * grid.shape[0] * grid.resolution_m)
             else:
-                grid = PointGrid.around(
-                    pose[:2],
-                    self.half_size_m,
+                grid = PointGrid(
+                    pose[:2] - 0.5 * self.cells * self.cfg.resolution_m,
+                    (self.cells, self.cells),
                     resolution_m=self.cfg.resolution_m,
                     radius_m=self.cfg.max_correspondence_m,
                     sigma_m=self.cfg.resolution_m,

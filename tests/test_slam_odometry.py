@@ -414,8 +414,15 @@ def test_sensor_reach_is_the_farthest_point_of_any_scan() -> None:
     assert odometry.sensor_reach_m(pts) == pytest.approx(5.5)
     assert odometry.sensor_reach_m([np.zeros((0, 2))]) == 0.0
     cfg = OdometryConfig()
-    assert odometry._Submaps(cfg, 5.5).half_size_m == pytest.approx(10.5)
-    assert odometry._Submaps(cfg, 1e6).half_size_m == pytest.approx(cfg.max_range_m + 5.0)
+    widest = odometry._Submaps(cfg, 1e6).cells
+    assert widest == odometry._Submaps(cfg).cells == round(2 * (cfg.max_range_m + 5.0) / cfg.resolution_m)
+    assert odometry._Submaps(cfg, 30.0).cells == widest  # twice 30 m reach beyond max_range_m
+    for reach_m in (5.5, 5.52, 12.0):
+        cells = odometry._Submaps(cfg, reach_m).cells
+        # twice the reach plus 5 m each side (one more cell where needed to keep the widest grid's edges)
+        side_m = 2 * (2 * reach_m + 5.0)
+        assert side_m <= cells * cfg.resolution_m < side_m + 2 * cfg.resolution_m
+        assert (widest - cells) % 2 == 0
 
 
 def test_submaps_sized_by_the_sensor_reach_register_as_before(monkeypatch) -> None:
@@ -426,18 +433,18 @@ def test_submaps_sized_by_the_sensor_reach_register_as_before(monkeypatch) -> No
     pts = scans_points_base(rec.scans, rec.laser_in_base_xytheta, cfg, 120)
     reach_m = odometry.sensor_reach_m(pts)
     grids = []
-    real_around = PointGrid.around
 
-    def around(*args, **kwargs):
-        grids.append(real_around(*args, **kwargs))
-        return grids[-1]
+    class Recorded(PointGrid):
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **kwargs)
+            grids.append(self)
 
-    monkeypatch.setattr(PointGrid, "around", around)
+    monkeypatch.setattr(odometry, "PointGrid", Recorded)
     sized = run_odometry(pts, None, cfg)
     sized_cells = grids[0].shape[0]
     monkeypatch.setattr(odometry, "sensor_reach_m", lambda _pts: np.inf)  # the configured range alone
     wide = run_odometry(pts, None, cfg)
-    assert sized_cells * cfg.resolution_m == pytest.approx(2 * (reach_m + 5.0), abs=cfg.resolution_m)
+    assert sized_cells * cfg.resolution_m < 2 * (2 * reach_m + 5.0) + 2 * cfg.resolution_m
     assert grids[-1].shape[0] * cfg.resolution_m >= 2 * cfg.max_range_m
     assert reach_m < 6.0
     np.testing.assert_array_equal(sized.poses_xytheta, wide.poses_xytheta)
