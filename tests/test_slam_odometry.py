@@ -430,7 +430,7 @@ def test_submaps_sized_by_the_sensor_reach_register_as_before(monkeypatch) -> No
     60 m, are a fraction of the cells and give the same poses and covariances bit for bit."""
     rec = open_dataset(data_file("lsm-demo/demo_index_fixed.bag"))
     cfg = OdometryConfig()
-    pts = scans_points_base(rec.scans, rec.laser_in_base_xytheta, cfg, 120)
+    pts = scans_points_base(rec.scans, rec.laser_in_base_xytheta, cfg)
     reach_m = odometry.sensor_reach_m(pts)
     grids = []
 
@@ -449,4 +449,4 @@ def test_submaps_sized_by_the_sensor_reach_register_as_before(monkeypatch) -> No
     assert reach_m < 6.0
     np.testing.assert_array_equal(sized.poses_xytheta, wide.poses_xytheta)
     np.testing.assert_array_equal(sized.cov_xytheta, wide.cov_xytheta)
-    assert sized.status_counts()["matched"] == wide.status_counts()["matched"] > 100
+    assert sized.status_counts()["matched"] == wide.status_counts()["matched"] > 300
