@@ -147,11 +147,8 @@ def scan_points_at(
 def sensor_reach_m(points_base: Sequence[FloatArray]) -> float:
     """The farthest of the (P_i, 2) base-frame points of any scan from its base (m; 0 without points): how
     far a submap must reach around the pose it is centred on."""
-    reach2 = 0.0
-    for pts in points_base:
-        if len(pts):
-            reach2 = max(reach2, float(np.max(np.einsum("ij,ij->i", pts, pts))))
-    return math.sqrt(reach2)
+    pts = np.concatenate([np.zeros((0, 2)), *points_base])
+    return math.sqrt(float(np.max(np.einsum("ij,ij->i", pts, pts), initial=0.0)))
 
 
 # the widest spacing along the scan that match_subset tries (Cartographer's adaptive voxel filter: 0.5 m)
@@ -249,7 +246,7 @@ class _Submaps:
         self.counts: list[int] = []
         self._pool: list[PointGrid] = []
         # half a side: the sensor's reach around a pose up to as far again from the grid's centre (travel
-        # within one submap), never more than max_range_m + 5 m, the side of the grids before this rule
+        # within one submap), never more than max_range_m + 5 m
         half_m = cfg.max_range_m + 5.0
         if reach_m is not None:
             half_m = min(half_m, 2.0 * reach_m + 5.0)
