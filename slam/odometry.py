@@ -236,8 +236,7 @@ class _Submaps:
     the scans hold, :func:`sensor_reach_m`) plus 5 m, at most ``max_range_m`` plus 5 m: a point of a later
     scan of the submap falls on it while that scan lies within the reach (plus 5 m) of the centre. Sized by
     the sensor's reach, a short-range scanner's grids take a few megabytes instead of the tens that the
-    configured range calls for, and their rows are shorter, so the cells one scan reads lie closer in
-    memory.
+    configured range calls for.
     """
 
     def __init__(self, cfg: OdometryConfig, reach_m: float | None = None) -> None:
@@ -523,7 +522,7 @@ class _Odometer:
         n: int,
         wheel_poses_xytheta: FloatArray | None,
         cfg: OdometryConfig,
-        reach_m: float | None = None,
+        reach_m: float,
     ) -> None:
         self.cfg = cfg
         self.poses = np.zeros((n, 3))
