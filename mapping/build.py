@@ -272,13 +272,13 @@ class MapBuilder:
             beams, build, cfg.pls.holdout_fraction, cfg.pls.holdout_block_scans, cfg.train.seed + seed_offset
         )
         info = dict(params.info)
-        loo = {"alpha": params.alpha, "beta": params.beta}
+        loo = {"alpha": params.alpha, "beta": params.beta, "mean_cap": params.mean_cap}
         if fitted is None:
             info["pls"] = {"fit": "loo (too few scans to hold out)", "loo": loo}
             return replace(params, info=info)
-        alpha, beta, used = fitted
+        alpha, beta, mean_cap, used = fitted
         info["pls"] = {"fit": "holdout", "loo": loo, **used}
-        return replace(params, alpha=alpha, beta=beta, info=info)
+        return replace(params, alpha=alpha, beta=beta, mean_cap=mean_cap, info=info)
 
     # -- maps -------------------------------------------------------------------------------------------
 

@@ -91,7 +91,7 @@ def holdout_link(
     fraction: float = 0.1,
     block: int = 10,
     seed: int = 0,
-) -> tuple[float, float, dict[str, Any]] | None:
+) -> tuple[float, float, float | None, dict[str, Any]] | None:
     """The PLS link (alpha, beta) fitted on predictions for held-out beams (module docstring).
 
     ``build_map(beams)`` builds the map of the remaining beams (the same mapper, hyperparameters and
@@ -107,10 +107,10 @@ def holdout_link(
     if not (labels > 0).any() or not (labels < 0).any() or out.all():
         return None
     prediction = build_map(beams.subset(~out)).query(points, sort=True)
-    alpha, beta = fit_pls(prediction.mean, prediction.variance, labels)
+    alpha, beta, mean_cap = fit_pls(prediction.mean, prediction.variance, labels)
     used = {
         "held_out_scans": int(held.size),
         "points": int(labels.size),
         "occupied_points": int((labels > 0).sum()),
     }
-    return alpha, beta, used
+    return alpha, beta, mean_cap, used

@@ -643,7 +643,8 @@ def _noisy_kernel_lanes(mode, kid, kp, XL, SL, SLo, SGr, GL, GGL, grouped, mask,
 class LocalGP(NamedTuple):
     """The local GP of every query: ``k_occ`` + ``k_free`` neighbours, the kernel (``kernel_id``, and its
     ``kernel_params`` as :meth:`mapping.kernels.Kernel.packed` gives them), the noise variance, the jitter of
-    a failed factorisation's retries, the PLS link ``alpha``, ``beta``, and ``chunk``, how many queries one
+    a failed factorisation's retries, the PLS link ``alpha``, ``beta`` and ``mean_cap`` (the bound of the
+    mean the link reads, :func:`mapping.pls.fit_pls`; ``inf``: none), and ``chunk``, how many queries one
     parallel task takes (its scratch is allocated once)."""
 
     k_occ: int
@@ -654,18 +655,21 @@ class LocalGP(NamedTuple):
     jitter: float
     alpha: float
     beta: float
+    mean_cap: float
     chunk: int
 
     @classmethod
     def of(
         cls, k_occ: int, k_free: int, kernel_id: int, kernel_params: FloatArray, noise_var: float,
-        jitter: float, alpha: float, beta: float, chunk: int = 256,
+        jitter: float, alpha: float, beta: float, chunk: int = 256, mean_cap: float | None = None,
     ) -> LocalGP:  # fmt: skip
-        """The tuple with normalised types (one compiled specialisation for all maps)."""
+        """The tuple with normalised types (one compiled specialisation for all maps); ``mean_cap`` None:
+        the mean is not capped."""
         kp = np.ascontiguousarray(kernel_params, dtype=np.float64)
+        cap = math.inf if mean_cap is None else float(mean_cap)
         return cls(
             int(k_occ), int(k_free), int(kernel_id), kp, float(noise_var), float(jitter), float(alpha),
-            float(beta), int(chunk),
+            float(beta), cap, int(chunk),
         )  # fmt: skip
 
 
@@ -793,8 +797,9 @@ def _solve_lanes(gp, inputs, lanes, nfill):
 
 @nb.njit(cache=True, error_model="numpy", inline="always")
 def _link(gp, mu, var):
-    """p(occ) by the PLS link."""
-    return _phi((gp.alpha * mu + gp.beta) / math.sqrt(1.0 + gp.alpha * gp.alpha * (var + gp.noise_var)))
+    """p(occ) by the PLS link, the mean capped at +-``gp.mean_cap``."""
+    m = min(max(mu, -gp.mean_cap), gp.mean_cap)
+    return _phi((gp.alpha * m + gp.beta) / math.sqrt(1.0 + gp.alpha * gp.alpha * (var + gp.noise_var)))
 
 
 @nb.njit(cache=True, error_model="numpy", inline="always")

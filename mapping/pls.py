@@ -40,9 +40,22 @@ def loo_predictions(
     return y - a / d, 1.0 / d
 
 
-def pls_probability(mean: FloatArray, var: FloatArray, alpha: float, beta: float) -> FloatArray:
-    """p(occ) = Phi((alpha mu + beta) / sqrt(1 + alpha^2 var)) (R&W eq. 6.42)."""
-    z = (alpha * np.asarray(mean) + beta) / np.sqrt(1.0 + alpha**2 * np.asarray(var))
+#: The caps the link's mean may take (:func:`fit_pls`, None: uncapped, the paper's link).
+MEAN_CAPS = (1.0, 1.02, 1.05, 1.1, 1.2, 1.5, None)
+
+
+def capped_mean(mean: FloatArray, mean_cap: float | None) -> FloatArray:
+    """The GP mean the link reads: clipped to [-mean_cap, mean_cap] (None: as it is)."""
+    m = np.asarray(mean, dtype=np.float64)
+    return m if mean_cap is None else np.clip(m, -mean_cap, mean_cap)
+
+
+def pls_probability(
+    mean: FloatArray, var: FloatArray, alpha: float, beta: float, mean_cap: float | None = None
+) -> FloatArray:
+    """p(occ) = Phi((alpha mu + beta) / sqrt(1 + alpha^2 var)) (R&W eq. 6.42), mu capped by ``mean_cap``
+    (:func:`capped_mean`)."""
+    z = (alpha * capped_mean(mean, mean_cap) + beta) / np.sqrt(1.0 + alpha**2 * np.asarray(var))
     return special.ndtr(z)
 
 
@@ -52,10 +65,31 @@ def _neg_loo_log_lik(params: FloatArray, mu: FloatArray, var: FloatArray, y: Flo
     return -float(np.mean(special.log_ndtr(z)))
 
 
-def fit_pls(mu: FloatArray, var: FloatArray, y: FloatArray) -> tuple[float, float]:
-    """alpha > 0 and beta maximising the mean LOO log-likelihood ``log Phi(y (alpha mu + beta) /
-    sqrt(1 + alpha^2 var))`` over all points (any shapes, broadcast together)."""
+def fit_pls(
+    mu: FloatArray, var: FloatArray, y: FloatArray, caps: tuple[float | None, ...] = MEAN_CAPS
+) -> tuple[float, float, float | None]:
+    """alpha > 0, beta and the mean's cap (one of ``caps``) maximising the mean LOO log-likelihood
+    ``log Phi(y (alpha mu_c + beta) / sqrt(1 + alpha^2 var))``, mu_c = :func:`capped_mean` (any shapes,
+    broadcast together).
+
+    Why a cap: the GP regresses labels of -1 and +1, and its mean overshoots them (beyond -1 beside dense
+    free space, beyond +1 inside walls). Read as it is, the link ranks an overshoot as surer than the label
+    itself, an artefact of least-squares classification (it penalises predictions "too correct", Bishop
+    2006, section 4.1.3); capped, the variance ranks those points instead. Whether the overshoot carries
+    evidence differs by recording; the leave-one-out likelihood decides, as it decides alpha and beta
+    (eq. 10), and None (the paper's link) is always a candidate."""
     mu, var, y = (np.asarray(a, dtype=np.float64).ravel() for a in np.broadcast_arrays(mu, var, y))
+    best: tuple[float, float, float, float | None] | None = None
+    for cap in caps:
+        nll, alpha, beta = _fit_link(capped_mean(mu, cap), var, y)
+        if best is None or nll < best[0]:
+            best = (nll, alpha, beta, cap)
+    assert best is not None
+    return best[1], best[2], best[3]
+
+
+def _fit_link(mu: FloatArray, var: FloatArray, y: FloatArray) -> tuple[float, float, float]:
+    """(mean negative LOO log-likelihood, alpha, beta) of the best of three L-BFGS-B starts."""
     best = None
     for a0 in (0.5, 2.0, 8.0):
         res = optimize.minimize(
@@ -67,4 +101,4 @@ def fit_pls(mu: FloatArray, var: FloatArray, y: FloatArray) -> tuple[float, floa
         )
         if best is None or res.fun < best.fun:
             best = res
-    return float(best.x[0]), float(best.x[1])
+    return float(best.fun), float(best.x[0]), float(best.x[1])

@@ -19,6 +19,7 @@ Then alpha, beta of the PLS link are fitted on the leave-one-out predictions of 
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +53,7 @@ class GPParams:
     alpha: float
     beta: float
     info: dict[str, Any] = field(default_factory=dict)
+    mean_cap: float | None = None
 
     @property
     def prior_variance(self) -> float:
@@ -74,7 +76,7 @@ class GPParams:
             "hyperparameters": self.kernel.as_dict(),
             "bounds": {k: list(b) for k, b in zip(self.kernel.names, self.kernel.bounds_values, strict=True)},
             "noise_var": self.noise_var,
-            "pls": {"alpha": self.alpha, "beta": self.beta},
+            "pls": {"alpha": self.alpha, "beta": self.beta, "mean_cap": self.mean_cap},
             "unseen_probability": self.unseen_probability,
             "info": self.info,
         }
@@ -91,6 +93,7 @@ class GPParams:
                 alpha=float(d["pls"]["alpha"]),
                 beta=float(d["pls"]["beta"]),
                 info=dict(d.get("info", {})),
+                mean_cap=_mean_cap(d["pls"].get("mean_cap")),
             )
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, ParamsFileError):
@@ -107,6 +110,16 @@ class GPParams:
         except (OSError, json.JSONDecodeError) as exc:
             raise ParamsFileError(f"cannot read GP parameters: {exc}") from None
         return cls.from_dict(data)
+
+
+def _mean_cap(value: Any) -> float | None:
+    """A parameter file's ``pls.mean_cap``: absent or null (files written before the cap) is uncapped."""
+    if value is None:
+        return None
+    cap = float(value)
+    if not (math.isfinite(cap) and cap > 0):
+        raise ValueError(f"pls.mean_cap must be a positive number or null, got {value!r}")
+    return cap
 
 
 def sample_training_queries(beams: Beams, n: int, seed: int = 0, beyond: float = 0.15) -> FloatArray:
@@ -314,10 +327,10 @@ def train_gp(
         expectation=expectation,
     )
     mu, var = loo_predictions(trained, X, y, nv, cov, expectation)
-    alpha, beta = fit_pls(mu, var, y)
+    alpha, beta, mean_cap = fit_pls(mu, var, y)
     info.update(
         {"scans": [int(scans[0]), int(scans[-1])], "n_scans": len(scans), "windows": windows, "seed": seed}
     )
     if expectation is not None:
         info["inputs"] = {"method": expectation.method, "level": expectation.level}
-    return GPParams(trained, nv, alpha, beta, info)
+    return GPParams(trained, nv, alpha, beta, info, mean_cap)

@@ -15,6 +15,7 @@ from mapping.build import MapBuilder
 from mapping.calibration import beam_test_points, holdout_link, inner_holdout
 from mapping.config import MappingConfig
 from mapping.kernels import make_kernel
+from mapping.pls import capped_mean
 from mapping.train import GPParams
 from tests.conftest import data_file
 
@@ -88,20 +89,24 @@ def test_holdout_link_fits_on_held_out_beams_only() -> None:
         seen.append(np.unique(rest.scan_index))
         return _DistanceMap(rest)
 
-    alpha, beta, used = holdout_link(b, build, fraction=0.2, block=5, seed=1)
+    alpha, beta, mean_cap, used = holdout_link(b, build, fraction=0.2, block=5, seed=1)
     held = inner_holdout(b.scan_index, 0.2, 5, 1)
     assert used["held_out_scans"] == held.size == 10
     assert not np.isin(seen[0], held).any() and seen[0].size == n - held.size  # the map never saw them
     # the stand-in separates the labels perfectly: a steep link, and the endpoint share of the points
     assert alpha > 5 and used["occupied_points"] == 10 * 7
+    assert mean_cap is None or mean_cap >= 1.0  # the stand-in's labels are +-1 exactly
     p_wall = special.ndtr((alpha + beta) / np.sqrt(1 + alpha**2 * 0.01))
     p_free = special.ndtr((-alpha + beta) / np.sqrt(1 + alpha**2 * 0.01))
     assert p_wall > 0.99 and p_free < 0.01
     assert holdout_link(b.select_scans(np.arange(9)), build) is None  # too few scans to hold any out
 
 
-def _log_lik(alpha: float, beta: float, mean: np.ndarray, var: np.ndarray, y: np.ndarray) -> float:
-    return float(np.mean(special.log_ndtr(y * (alpha * mean + beta) / np.sqrt(1 + alpha**2 * var))))
+def _log_lik(params, mean: np.ndarray, var: np.ndarray, y: np.ndarray) -> float:
+    m = capped_mean(mean, params.mean_cap)
+    return float(
+        np.mean(special.log_ndtr(y * (params.alpha * m + params.beta) / np.sqrt(1 + params.alpha**2 * var)))
+    )
 
 
 @pytest.mark.slow
@@ -120,10 +125,10 @@ def test_holdout_link_predicts_unseen_scans_better_than_loo_on_a_real_log() -> N
     hold = hold_builder.fit(train)
     assert loo.kernel.as_dict() == hold.kernel.as_dict()  # the same hyperparameters, another link
     assert hold.info["pls"]["fit"] == "holdout" and hold.info["pls"]["held_out_scans"] == 20
-    assert hold.info["pls"]["loo"] == {"alpha": loo.alpha, "beta": loo.beta}
+    assert hold.info["pls"]["loo"] == {"alpha": loo.alpha, "beta": loo.beta, "mean_cap": loo.mean_cap}
     assert 0 < hold.unseen_probability < 1 and 0 < loo.unseen_probability < 1
     pts, y = beam_test_points(test, seed=3)
     pred = loo_builder.gp_map(train, loo).query(pts)
-    ll_loo = _log_lik(loo.alpha, loo.beta, pred.mean, pred.variance, y)
-    ll_hold = _log_lik(hold.alpha, hold.beta, pred.mean, pred.variance, y)
+    ll_loo = _log_lik(loo, pred.mean, pred.variance, y)
+    ll_hold = _log_lik(hold, pred.mean, pred.variance, y)
     assert ll_hold > ll_loo, (ll_hold, ll_loo)

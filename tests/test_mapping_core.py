@@ -55,7 +55,7 @@ def reference_predict(beams, params, queries, k_occ, k_free):
         var = kss - ks @ np.linalg.solve(K, ks)
         out.append((mean, var, np.abs(ks).max() / kss))
     mean, var, ks_ratio = np.array(out).T
-    prob = pls_probability(mean, var + params.noise_var, params.alpha, params.beta)
+    prob = pls_probability(mean, var + params.noise_var, params.alpha, params.beta, params.mean_cap)
     return mean, var, prob, ks_ratio
 
 
@@ -110,11 +110,16 @@ def test_knn_with_fewer_items_than_k_pads() -> None:
     assert (free[0, :5] >= 0).all() and (free[0, 5:] == -1).all()
 
 
-@pytest.mark.parametrize("kernel_name", ["nn", "se", "matern32", "matern52"])
-def test_compiled_prediction_matches_numpy_reference(kernel_name: str) -> None:
+@pytest.mark.parametrize(
+    ("kernel_name", "mean_cap"),
+    [("nn", None), ("se", None), ("matern32", None), ("matern52", None), ("se", 1.0)],
+)
+def test_compiled_prediction_matches_numpy_reference(kernel_name: str, mean_cap: float | None) -> None:
     beams = random_beams(4)
     values = {"nn": {"sigma_0": 3.0, "sigma": 5.0}, "se": {"length_scale": 0.7}}.get(kernel_name, {})
-    params = GPParams(make_kernel(kernel_name, values), noise_var=0.05, alpha=2.5, beta=-0.2)
+    params = GPParams(
+        make_kernel(kernel_name, values), noise_var=0.05, alpha=2.5, beta=-0.2, mean_cap=mean_cap
+    )
     gp = GPOccupancyMap(beams, params, k_occ=15, k_free=15, index_cell_m=0.5)
     queries = np.random.default_rng(5).uniform(-2, 12, (80, 2))
     pred = gp.query(queries)
@@ -132,6 +137,11 @@ def test_compiled_prediction_matches_numpy_reference(kernel_name: str) -> None:
     np.testing.assert_allclose(pred.variance[near], var[near], rtol=1e-7, atol=1e-9)
     np.testing.assert_allclose(pred.probability[near], prob[near], rtol=1e-7, atol=1e-9)
     assert np.all((pred.variance >= 0) & (pred.variance <= prior))
+    if mean_cap is not None:  # the cap acts: some means overshoot the labels, and the link reads them capped
+        over = np.abs(pred.mean) > mean_cap
+        assert over.any()
+        uncapped = pls_probability(pred.mean, pred.variance + params.noise_var, params.alpha, params.beta)
+        assert not np.allclose(pred.probability[over], uncapped[over], rtol=1e-3)
 
 
 def test_render_equals_query_at_cell_centres_and_any_resolution() -> None:

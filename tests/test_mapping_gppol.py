@@ -48,7 +48,8 @@ def _reference_prediction(gp: GPOccupancyMap, queries: np.ndarray, k_occ: int, k
     p = gp.params
     from scipy.special import ndtr
 
-    prob = ndtr((p.alpha * mu + p.beta) / np.sqrt(1.0 + p.alpha**2 * (var + p.noise_var)))
+    m = mu if p.mean_cap is None else np.clip(mu, -p.mean_cap, p.mean_cap)
+    prob = ndtr((p.alpha * m + p.beta) / np.sqrt(1.0 + p.alpha**2 * (var + p.noise_var)))
     return mu, var, prob, full
 
 

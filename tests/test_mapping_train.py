@@ -82,7 +82,7 @@ def test_pls_fit_separates_and_link_has_the_square_root() -> None:
     y = np.where(rng.random(400) < 0.5, 1.0, -1.0)
     mu = 0.8 * y + 0.3 * rng.normal(size=400)
     var = np.full(400, 0.2)
-    alpha, beta = fit_pls(mu, var, y)
+    alpha, beta, _ = fit_pls(mu, var, y, caps=(None,))
     assert alpha > 1.0 and abs(beta / alpha) < 0.2  # the boundary mu = -beta / alpha lies near 0
     p = pls_probability(mu, var, alpha, beta)
     assert np.mean((p > 0.5) == (y > 0)) > 0.95
@@ -90,6 +90,42 @@ def test_pls_fit_separates_and_link_has_the_square_root() -> None:
     from scipy.stats import norm
 
     assert pls_probability(1.0, 3.0, 2.0, 0.5) == pytest.approx(norm.cdf(2.5 / np.sqrt(13.0)))
+
+
+def _saturated_links(rng: np.random.Generator, overshoot_is_evidence: bool) -> tuple[np.ndarray, ...]:
+    """LOO means, variances and labels: a third of the points in the link's slope, the rest saturated at
+    their label with an overshoot. ``overshoot_is_evidence``: the farther beyond -1 a free point's mean, the
+    surer it is free; otherwise the overshoot is unrelated to the label and the points that are wrong (one in
+    ten) overshoot as often as the right ones."""
+    n = 3000
+    y = np.where(rng.random(n) < 0.5, 1.0, -1.0)
+    mu = 0.6 * y + 0.3 * rng.normal(size=n)
+    sat = rng.random(n) < 2 / 3
+    over = np.abs(rng.normal(scale=0.15, size=n))
+    if overshoot_is_evidence:
+        wrong = sat & (rng.random(n) < 0.2) & (over < 0.05)  # the errors sit at the label, never beyond it
+    else:
+        wrong = sat & (rng.random(n) < 0.1)
+    side = np.where(wrong, -y, y)
+    mu = np.where(sat, side * (1.0 + over), mu)
+    return mu, np.full(n, 0.05), y
+
+
+def test_pls_mean_cap_is_chosen_by_the_loo_likelihood() -> None:
+    rng = np.random.default_rng(4)
+    mu, var, y = _saturated_links(rng, overshoot_is_evidence=False)
+    _, _, cap = fit_pls(mu, var, y)
+    assert (
+        cap is not None and cap <= 1.05
+    )  # the overshoot is noise: read at the label, ranked by the variance
+    _, _, paper = fit_pls(mu, var, y, caps=(None,))
+    assert paper is None
+    mu, var, y = _saturated_links(rng, overshoot_is_evidence=True)
+    _, _, cap = fit_pls(mu, var, y)
+    assert cap is None or cap >= 1.2  # the overshoot is evidence: kept
+    # the capped link reads a mean beyond the cap as the cap itself
+    assert pls_probability(-1.3, 0.1, 4.0, 0.2, 1.0) == pls_probability(-1.0, 0.1, 4.0, 0.2)
+    assert pls_probability(-1.3, 0.1, 4.0, 0.2) < pls_probability(-1.0, 0.1, 4.0, 0.2)
 
 
 def test_train_gp_end_to_end_and_params_round_trip(tmp_path) -> None:
@@ -101,7 +137,12 @@ def test_train_gp_end_to_end_and_params_round_trip(tmp_path) -> None:
     again = GPParams.load(path)
     assert again.kernel.name == "nn"
     np.testing.assert_allclose(again.kernel.theta, params.kernel.theta)
-    assert (again.noise_var, again.alpha, again.beta) == (params.noise_var, params.alpha, params.beta)
+    assert (again.noise_var, again.alpha, again.beta, again.mean_cap) == (
+        params.noise_var,
+        params.alpha,
+        params.beta,
+        params.mean_cap,
+    )
 
 
 def test_bad_params_file(tmp_path) -> None:
