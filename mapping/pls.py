@@ -1,11 +1,14 @@
 """Probabilistic least-squares classification (paper section 3.3, Rasmussen & Williams section 6.4).
 
 The GP regression output is squashed through ``p(occ|x) = Phi((alpha mu + beta) / sqrt(1 + alpha^2 var))``
-(R&W eq. 6.42; the paper's eq. (10) drops the square root, SPEC section 5). alpha and beta maximise the
-leave-one-out likelihood, with the LOO mean and variance of eqs. (11)-(12).
+(R&W eq. 6.42; the paper's eq. (10) drops the square root, SPEC section 5), mu capped at +-c (:func:`fit_pls`
+says why). alpha, beta and c maximise the leave-one-out likelihood, with the LOO mean and variance of
+eqs. (11)-(12).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,6 +45,8 @@ def loo_predictions(
 
 #: The caps the link's mean may take (:func:`fit_pls`, None: uncapped, the paper's link).
 MEAN_CAPS = (1.0, 1.02, 1.05, 1.1, 1.2, 1.5, None)
+#: Mean LOO negative log-likelihoods closer than this are a tie (:func:`fit_pls`).
+CAP_TIE_NLL = 1e-6
 
 
 def capped_mean(mean: FloatArray, mean_cap: float | None) -> FloatArray:
@@ -77,27 +82,30 @@ def fit_pls(
     itself, an artefact of least-squares classification (it penalises predictions "too correct", Bishop
     2006, section 4.1.3); capped, the variance ranks those points instead. Whether the overshoot carries
     evidence differs by recording; the leave-one-out likelihood decides, as it decides alpha and beta
-    (eq. 10), and None (the paper's link) is always a candidate."""
+    (eq. 10), and None (the paper's link) is always a candidate. Caps the likelihood cannot tell apart
+    (within :data:`CAP_TIE_NLL`, e.g. when no leave-one-out mean reaches them) go to the largest of them,
+    so the choice neither rests on the optimiser's last digits nor caps where the data do not ask for it."""
     mu, var, y = (np.asarray(a, dtype=np.float64).ravel() for a in np.broadcast_arrays(mu, var, y))
-    best: tuple[float, float, float, float | None] | None = None
-    for cap in caps:
-        nll, alpha, beta = _fit_link(capped_mean(mu, cap), var, y)
-        if best is None or nll < best[0]:
-            best = (nll, alpha, beta, cap)
-    assert best is not None
-    return best[1], best[2], best[3]
+    fits = [(*_fit_link(capped_mean(mu, cap), var, y), cap) for cap in caps]
+    least = min(f[0] for f in fits)
+    tied = [f for f in fits if f[0] <= least + CAP_TIE_NLL]
+    _, alpha, beta, cap = max(tied, key=lambda f: math.inf if f[3] is None else f[3])
+    return alpha, beta, cap
 
 
 def _fit_link(mu: FloatArray, var: FloatArray, y: FloatArray) -> tuple[float, float, float]:
-    """(mean negative LOO log-likelihood, alpha, beta) of the best of three L-BFGS-B starts."""
+    """(mean negative LOO log-likelihood, alpha, beta) of the best of four L-BFGS-B starts, run to tight
+    tolerances: :func:`fit_pls` compares these likelihoods across caps, and a fit stopped early would
+    decide the choice."""
     best = None
-    for a0 in (0.5, 2.0, 8.0):
+    for a0 in (0.5, 2.0, 8.0, 32.0):
         res = optimize.minimize(
             _neg_loo_log_lik,
             x0=np.array([a0, 0.0]),
             args=(mu, var, y),
             method="L-BFGS-B",
             bounds=[(1e-3, 1e3), (-20.0, 20.0)],
+            options={"ftol": 1e-13, "gtol": 1e-9},
         )
         if best is None or res.fun < best.fun:
             best = res

@@ -12,8 +12,9 @@ the query. The objective is the sum of eq. (9) over these local problems, evalua
 computation. Centring matters for the non-stationary NN kernel (eq. 7), whose behaviour depends on the
 distance from the coordinate origin: the map uses it in query-centred coordinates, and so does training.
 
-Then alpha, beta of the PLS link are fitted on the leave-one-out predictions of the same problems
-(eqs. 10-12, :mod:`mapping.pls`). Everything is stored in :class:`GPParams` (JSON), reusable by later runs.
+Then alpha, beta and the mean's cap of the PLS link are fitted on the leave-one-out predictions of the same
+problems (eqs. 10-12, :mod:`mapping.pls`). Everything is stored in :class:`GPParams` (JSON), reusable by later
+runs.
 """
 
 from __future__ import annotations

@@ -123,6 +123,10 @@ def test_pls_mean_cap_is_chosen_by_the_loo_likelihood() -> None:
     mu, var, y = _saturated_links(rng, overshoot_is_evidence=True)
     _, _, cap = fit_pls(mu, var, y)
     assert cap is None or cap >= 1.2  # the overshoot is evidence: kept
+    # caps no leave-one-out mean reaches tie with no cap: the paper's link is kept, however the fits round
+    inside = np.clip(mu, -0.99, 0.99)
+    assert fit_pls(inside, var, y)[2] is None
+    assert fit_pls(inside * (1 + 1e-12), var, y)[2] is None
     # the capped link reads a mean beyond the cap as the cap itself
     assert pls_probability(-1.3, 0.1, 4.0, 0.2, 1.0) == pls_probability(-1.0, 0.1, 4.0, 0.2)
     assert pls_probability(-1.3, 0.1, 4.0, 0.2) < pls_probability(-1.0, 0.1, 4.0, 0.2)
@@ -153,6 +157,17 @@ def test_bad_params_file(tmp_path) -> None:
     path.write_text(json.dumps({"format": "gpom-gp-params-1", "kernel": "nn"}))
     with pytest.raises(ParamsFileError, match="bad GP parameter file"):
         GPParams.load(path)
+    good = train_gp(
+        random_beams(8, n_scans=20), "se", noise_var=0.1, n_scans=10, n_problems=12, maxfun=20, maxiter=10
+    )
+    bad_cap = good.to_dict()
+    bad_cap["pls"]["mean_cap"] = -1.0
+    path.write_text(json.dumps(bad_cap))
+    with pytest.raises(ParamsFileError, match="mean_cap"):
+        GPParams.load(path)
+    del bad_cap["pls"]["mean_cap"]  # a file written before the cap reads as uncapped
+    path.write_text(json.dumps(bad_cap))
+    assert GPParams.load(path).mean_cap is None
     path.write_text(json.dumps({"format": "other"}))
     with pytest.raises(ParamsFileError, match="not a GP parameter file"):
         GPParams.load(path)
