@@ -92,13 +92,14 @@ def holdout_link(
     block: int = 10,
     seed: int = 0,
 ) -> tuple[float, float, float | None, dict[str, Any]] | None:
-    """The PLS link (alpha, beta) fitted on predictions for held-out beams (module docstring).
+    """The PLS link (alpha, beta and the mean's cap, :func:`mapping.pls.fit_pls`) fitted on predictions for
+    held-out beams (module docstring).
 
     ``build_map(beams)`` builds the map of the remaining beams (the same mapper, hyperparameters and
     sensor model as the real map); :func:`inner_holdout` chooses the held-out scans
     (``fraction``, ``block``, ``seed``) and :func:`beam_test_points` their labelled points. Returns alpha,
-    beta and what was used (``held_out_scans``, ``points``, ``occupied_points``), or None when the beams
-    have too few scans to hold any out or the held-out points lack one of the two labels."""
+    beta, the cap and what was used (``held_out_scans``, ``points``, ``occupied_points``), or None when the
+    beams have too few scans to hold any out or the held-out points lack one of the two labels."""
     held = inner_holdout(beams.scan_index, fraction, block, seed)
     if held.size == 0:
         return None

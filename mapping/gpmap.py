@@ -320,17 +320,9 @@ class GPOccupancyMap:
         kid, kp = self.params.kernel.packed()
         p = self.params
         gp = LocalGP.of(
-            self.k_occ,
-            self.k_free,
-            kid,
-            kp,
-            p.noise_var,
-            self.jitter,
-            p.alpha,
-            p.beta,
-            self.chunk,
-            p.mean_cap,
-        )
+            self.k_occ, self.k_free, kid, kp, p.noise_var, self.jitter, p.alpha, p.beta, self.chunk,
+            mean_cap=p.mean_cap,
+        )  # fmt: skip
         predict_batch(pts, self.index.points, self.index.segments, gp, self._inputs, mean, var, prob)
         if order is not None:
             inv = np.empty_like(order)
