@@ -92,6 +92,24 @@ def test_pls_fit_separates_and_link_has_the_square_root() -> None:
     assert pls_probability(1.0, 3.0, 2.0, 0.5) == pytest.approx(norm.cdf(2.5 / np.sqrt(13.0)))
 
 
+def test_pls_link_gradient_matches_finite_differences() -> None:
+    from scipy import optimize
+
+    from mapping.pls import _neg_loo_log_lik, _neg_loo_log_lik_grad
+
+    rng = np.random.default_rng(3)
+    y = np.where(rng.random(500) < 0.3, 1.0, -1.0)
+    mu = 0.7 * y + 0.4 * rng.normal(size=500)
+    var = rng.uniform(0.01, 1.5, 500)
+    for params in ([0.5, -0.3], [4.0, 0.8], [300.0, 15.0]):
+        x = np.array(params)
+        value, grad = _neg_loo_log_lik_grad(x, mu, var, y)
+        assert value == pytest.approx(_neg_loo_log_lik(x, mu, var, y), rel=1e-12)
+        step = 1e-6 * np.maximum(1.0, np.abs(x))
+        numeric = optimize.approx_fprime(x, _neg_loo_log_lik, step, mu, var, y)
+        np.testing.assert_allclose(grad, numeric, rtol=1e-4, atol=1e-9)
+
+
 def _saturated_links(rng: np.random.Generator, overshoot_is_evidence: bool) -> tuple[np.ndarray, ...]:
     """LOO means, variances and labels: a third of the points in the link's slope, the rest saturated at
     their label with an overshoot. ``overshoot_is_evidence``: the farther beyond -1 a free point's mean, the
