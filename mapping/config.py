@@ -131,6 +131,15 @@ class PlsConfig(StageConfig):
         "better calibrated and a higher mean hold-out AUC, but lower GPPOL AUC in observed cells: "
         "docs/mapping.md)",
     )
+    loo_problems: int = Field(
+        4096,
+        ge=1,
+        le=100_000,
+        description="local neighbourhoods whose leave-one-out predictions fit the link ('loo'): the "
+        "training problems plus fresh ones from the same scans. 4096: of 64 (train.problems), 1024 and "
+        "4096, the best mean hold-out AUC over the eleven reference-pose logs, and no log lower "
+        "(docs/mapping.md)",
+    )
     holdout_fraction: float = Field(
         0.1, gt=0, lt=1, description="share of the mapped scans held out ('holdout')"
     )

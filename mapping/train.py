@@ -12,9 +12,9 @@ the query. The objective is the sum of eq. (9) over these local problems, evalua
 computation. Centring matters for the non-stationary NN kernel (eq. 7), whose behaviour depends on the
 distance from the coordinate origin: the map uses it in query-centred coordinates, and so does training.
 
-Then alpha, beta and the mean's cap of the PLS link are fitted on the leave-one-out predictions of the same
-problems (eqs. 10-12, :mod:`mapping.pls`). Everything is stored in :class:`GPParams` (JSON), reusable by later
-runs.
+Then alpha, beta and the mean's cap of the PLS link are fitted on the leave-one-out predictions of these
+problems and more drawn the same way (eqs. 10-12, :mod:`mapping.pls`). Everything is stored in
+:class:`GPParams` (JSON), reusable by later runs.
 """
 
 from __future__ import annotations
@@ -275,6 +275,10 @@ def training_scans(scan_ids: NDArray, n_scans: int, windows: int = 1) -> NDArray
     return ids[np.unique(np.clip(picked, 0, ids.size - 1))]
 
 
+#: Offset of the seed of the link's extra problems from the training seed (a stream of its own).
+_LINK_SEED = 1_000_003
+
+
 def train_gp(
     beams: Beams,
     kernel_name: str = "nn",
@@ -292,11 +296,17 @@ def train_gp(
     learn_noise: bool = False,
     inputs: GaussianInputs | None = None,
     windows: int = 1,
+    link_problems: int | None = None,
 ) -> GPParams:
     """Learn kernel hyperparameters and the PLS link from ``n_scans`` distinct scans of ``beams`` in
     ``windows`` runs of consecutive scans (:func:`training_scans`; 1: the first ``n_scans``). With
     ``inputs`` (the beams' input Gaussians) the GPPOL model is trained: eq. (9) and the leave-one-out PLS
-    fit (eqs. 10-12) with the kernel integrated over the inputs."""
+    fit (eqs. 10-12) with the kernel integrated over the inputs.
+
+    The link is fitted on the leave-one-out predictions of ``link_problems`` local problems (None: the
+    ``n_problems`` of training): the training problems plus fresh ones from the same scans. Its three
+    constants cost little to fit on many more points than the hyperparameters, and the mean's cap
+    (:func:`mapping.pls.fit_pls`) turns on likelihood differences a small sample does not resolve."""
     scans = training_scans(beams.scan_index, n_scans, windows)
     keep = np.isin(beams.scan_index, scans)
     train_beams = beams.subset(keep)
@@ -327,8 +337,20 @@ def train_gp(
         cov=cov,
         expectation=expectation,
     )
+    extra = 0 if link_problems is None else link_problems - n_problems
+    if extra > 0:
+        more = sample_training_queries(train_beams, extra, seed + _LINK_SEED)
+        if inputs is None:
+            X2, y2, _ = index.local_problems(more, k_occ, k_free)
+        else:
+            X2, cov2, y2, _ = index.local_gaussians(
+                more, k_occ, k_free, inputs.moments.subset(keep), inputs.free().subset(keep)
+            )
+            cov = np.concatenate([cov, cov2])
+        X, y = np.concatenate([X, X2]), np.concatenate([y, y2])
     mu, var = loo_predictions(trained, X, y, nv, cov, expectation)
     alpha, beta, mean_cap = fit_pls(mu, var, y)
+    info["link_problems"] = int(X.shape[0])
     info.update(
         {"scans": [int(scans[0]), int(scans[-1])], "n_scans": len(scans), "windows": windows, "seed": seed}
     )

@@ -95,19 +95,40 @@ def test_pls_fit_separates_and_link_has_the_square_root() -> None:
 def test_pls_link_gradient_matches_finite_differences() -> None:
     from scipy import optimize
 
-    from mapping.pls import _neg_loo_log_lik, _neg_loo_log_lik_grad
+    from mapping.pls import _neg_loo_log_lik, _neg_loo_log_lik_st
 
     rng = np.random.default_rng(3)
     y = np.where(rng.random(500) < 0.3, 1.0, -1.0)
     mu = 0.7 * y + 0.4 * rng.normal(size=500)
     var = rng.uniform(0.01, 1.5, 500)
-    for params in ([0.5, -0.3], [4.0, 0.8], [300.0, 15.0]):
-        x = np.array(params)
-        value, grad = _neg_loo_log_lik_grad(x, mu, var, y)
-        assert value == pytest.approx(_neg_loo_log_lik(x, mu, var, y), rel=1e-12)
-        step = 1e-6 * np.maximum(1.0, np.abs(x))
-        numeric = optimize.approx_fprime(x, _neg_loo_log_lik, step, mu, var, y)
-        np.testing.assert_allclose(grad, numeric, rtol=1e-4, atol=1e-9)
+    for s, t in ((2.0, -0.6), (0.25, 0.2), (1e-3, 0.05)):
+        x = np.array([s, t])
+        value, grad = _neg_loo_log_lik_st(x, mu, var, y)
+        # the same likelihood as (alpha, beta) = (1 / s, t / s)
+        assert value == pytest.approx(_neg_loo_log_lik(np.array([1 / s, t / s]), mu, var, y), rel=1e-12)
+        numeric = optimize.approx_fprime(x, lambda z: _neg_loo_log_lik_st(z, mu, var, y)[0], 1e-7)
+        np.testing.assert_allclose(grad, numeric, rtol=1e-4, atol=1e-8)
+
+
+def test_pls_fit_reaches_the_scale_free_limit_and_scouts_large_sets() -> None:
+    from mapping import pls
+
+    # labels decided by the mean alone: the likelihood grows towards alpha -> inf at beta / alpha fixed
+    rng = np.random.default_rng(5)
+    y = np.where(rng.random(20_000) < 0.3, 1.0, -1.0)
+    mu = 0.8 * y + 0.25 * rng.normal(size=y.size)
+    var = np.full(y.size, 0.1)
+    alpha, beta, _ = fit_pls(mu, var, y, caps=(None,))
+    assert alpha == pytest.approx(1 / pls.LINK_BOUNDS[0][0])  # the bound of s = 1 / alpha
+    assert abs(beta / alpha) < 0.1
+    # the strided scouting finds the optimum that all four starts on all points find
+    assert y.size > pls.SCOUT_POINTS
+    full = min(
+        (pls._minimize_link(np.array([1 / a0, 0.0]), mu, var, y) for a0 in (0.5, 2.0, 8.0, 32.0)),
+        key=lambda r: r.fun,
+    )
+    nll, _, _ = pls._fit_link(mu, var, y)
+    assert nll == pytest.approx(full.fun, abs=1e-9)
 
 
 def _saturated_links(rng: np.random.Generator, overshoot_is_evidence: bool) -> tuple[np.ndarray, ...]:
@@ -232,3 +253,25 @@ def test_train_gp_reads_the_scans_of_its_windows() -> None:
     params = train_gp(beams, "se", n_scans=12, n_problems=16, maxfun=5, maxiter=5, windows=3)
     assert params.info["n_scans"] == 12 and params.info["windows"] == 3
     assert params.info["scans"] == [0, 39]
+
+
+def test_the_link_is_fitted_on_more_problems_than_the_hyperparameters() -> None:
+    from mapping.build import MapBuilder
+    from pipeline.config import MappingConfig
+
+    beams = random_beams(6, n_scans=30)
+    kw = dict(n_scans=12, n_problems=16, maxfun=10, maxiter=10, seed=2)
+    plain = train_gp(beams, "se", **kw)
+    assert plain.info["link_problems"] == plain.info["problems"] == 16
+    same = train_gp(beams, "se", link_problems=16, **kw)
+    assert (same.alpha, same.beta, same.mean_cap) == (plain.alpha, plain.beta, plain.mean_cap)
+    more = train_gp(beams, "se", link_problems=400, **kw)
+    assert more.info["link_problems"] == 400 and more.info["problems"] == 16
+    np.testing.assert_array_equal(more.kernel.theta, plain.kernel.theta)  # the link only
+    assert (more.alpha, more.beta) != (plain.alpha, plain.beta)
+    # GPPOL's extra problems carry their inputs' covariances through the configuration's key
+    train = {"scans": 12, "problems": 16, "anneal_evaluations": 10, "lbfgs_iterations": 10}
+    for n in (16, 120):
+        cfg = MappingConfig(train=train, pls={"link": "loo", "loo_problems": n})
+        params = MapBuilder.from_config(cfg, "gppol").fit(beams)
+        assert params.info["link_problems"] == n and params.info["problems"] == 16
