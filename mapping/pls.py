@@ -134,6 +134,7 @@ def _fit_link(mu: FloatArray, var: FloatArray, y: FloatArray) -> tuple[float, fl
 
 
 def _minimize_link(x0: FloatArray, mu: FloatArray, var: FloatArray, y: FloatArray) -> optimize.OptimizeResult:
+    """One L-BFGS-B fit of (s, t) from ``x0``."""
     return optimize.minimize(
         _neg_loo_log_lik_st,
         x0=x0,

@@ -275,3 +275,7 @@ def test_the_link_is_fitted_on_more_problems_than_the_hyperparameters() -> None:
         cfg = MappingConfig(train=train, pls={"link": "loo", "loo_problems": n})
         params = MapBuilder.from_config(cfg, "gppol").fit(beams)
         assert params.info["link_problems"] == n and params.info["problems"] == 16
+    # a link fitted on held-out scans draws no extra leave-one-out problems
+    cfg = MappingConfig(train=train, pls={"link": "holdout", "loo_problems": 120})
+    params = MapBuilder.from_config(cfg, "gpfol").fit(beams)
+    assert params.info["link_problems"] == 16 and params.info["pls"]["fit"] == "holdout"
