@@ -102,12 +102,24 @@ def test_pls_link_gradient_matches_finite_differences() -> None:
     mu = 0.7 * y + 0.4 * rng.normal(size=500)
     var = rng.uniform(0.01, 1.5, 500)
     for s, t in ((2.0, -0.6), (0.25, 0.2), (1e-3, 0.05)):
-        x = np.array([s, t])
-        value, grad = _neg_loo_log_lik_st(x, mu, var, y)
+        value, g_s, g_t = _neg_loo_log_lik_st(s, t, mu, var, y)
         # the same likelihood as (alpha, beta) = (1 / s, t / s)
         assert value == pytest.approx(_neg_loo_log_lik(np.array([1 / s, t / s]), mu, var, y), rel=1e-12)
-        numeric = optimize.approx_fprime(x, lambda z: _neg_loo_log_lik_st(z, mu, var, y)[0], 1e-7)
-        np.testing.assert_allclose(grad, numeric, rtol=1e-4, atol=1e-8)
+        numeric = optimize.approx_fprime(
+            np.array([s, t]), lambda x: _neg_loo_log_lik_st(x[0], x[1], mu, var, y)[0], 1e-7
+        )
+        np.testing.assert_allclose([g_s, g_t], numeric, rtol=1e-4, atol=1e-8)
+
+
+def test_compiled_log_ndtr_equals_scipy_over_its_whole_range() -> None:
+    from scipy import special
+
+    from mapping.pls import _neg_loo_log_lik_st
+
+    z = np.r_[np.linspace(-80.0, 40.0, 4001), -37.0, -36.999, 0.0, 1e-9]
+    # one point per call: the likelihood of mu = z, var = 1 - s^2 (r = 1), y = 1 is -log Phi(z)
+    ours = np.array([-_neg_loo_log_lik_st(0.0, 0.0, np.array([v]), np.ones(1), np.ones(1))[0] for v in z])
+    np.testing.assert_allclose(ours, special.log_ndtr(z), rtol=1e-10, atol=1e-300)
 
 
 def test_pls_fit_reaches_the_scale_free_limit_and_scouts_large_sets() -> None:
