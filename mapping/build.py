@@ -248,7 +248,7 @@ class MapBuilder:
                 learn_noise=cfg.learn_noise,
                 inputs=inputs,
                 windows=cfg.train.windows,
-                link_problems=cfg.pls.loo_problems if cfg.pls.link == "loo" else None,
+                link_problems=cfg.pls.loo_problems,
             )
         except ValueError as exc:
             raise MappingError(f"cannot train the GP: {exc}") from None

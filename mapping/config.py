@@ -135,8 +135,9 @@ class PlsConfig(StageConfig):
         4096,
         ge=1,
         le=100_000,
-        description="local neighbourhoods whose leave-one-out predictions fit the link ('loo'): the "
-        "training problems plus fresh ones from the same scans. 4096: of 64 (train.problems), 1024 and "
+        description="local neighbourhoods whose leave-one-out predictions fit the link ('loo'; with "
+        "'holdout', the leave-one-out link it replaces, kept in the parameters' info): the training "
+        "problems plus fresh ones from the same scans. 4096: of 64 (train.problems), 1024 and "
         "4096, the best mean hold-out AUC over the eleven reference-pose logs, and no log lower "
         "(docs/mapping.md)",
     )

@@ -21,6 +21,10 @@ from mapping.noisy_kernels import InputExpectation
 FloatArray = NDArray[np.float64]
 
 
+#: Local problems per batch of :func:`loo_predictions`.
+LOO_CHUNK = 256
+
+
 def loo_predictions(
     kernel: Kernel,
     X: FloatArray,
@@ -33,6 +37,19 @@ def loo_predictions(
     X (Q, n, 2), y (Q, n): ``mu_i = y_i - [K^-1 y]_i / [K^-1]_ii``, ``var_i = 1 / [K^-1]_ii``, with
     K including the noise variance (GPPOL: inputs N(X, cov (Q, n, 2, 2)), K integrated by ``expectation``).
     Returns two (Q, n) arrays."""
+    if X.shape[0] > LOO_CHUNK:  # bounded temporaries (GPPOL: (n, n, 2, 2) per problem) run faster
+        parts = [
+            loo_predictions(
+                kernel,
+                X[i : i + LOO_CHUNK],
+                y[i : i + LOO_CHUNK],
+                noise_var,
+                None if cov is None else cov[i : i + LOO_CHUNK],
+                expectation,
+            )
+            for i in range(0, X.shape[0], LOO_CHUNK)
+        ]
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
     if cov is None:
         K = kernel(X)
     else:

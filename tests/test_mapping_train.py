@@ -77,6 +77,22 @@ def test_loo_formulas_equal_explicit_leave_one_out() -> None:
             assert var[q, i] == pytest.approx(v, rel=1e-8)
 
 
+def test_loo_predictions_in_batches_equal_one_batch(monkeypatch) -> None:
+    from mapping import pls
+    from mapping.noisy_kernels import InputExpectation
+
+    X, y = problems(4, q=11, n=8)
+    rng = np.random.default_rng(4)
+    A = rng.normal(scale=0.1, size=(11, 8, 2, 2))
+    cov = A @ np.swapaxes(A, -1, -2) + 1e-3 * np.eye(2)
+    k = make_kernel("se")
+    whole = [loo_predictions(k, X, y, 0.05), loo_predictions(k, X, y, 0.05, cov, InputExpectation("girard"))]
+    monkeypatch.setattr(pls, "LOO_CHUNK", 3)  # batches of 3, 3, 3 and 2 problems
+    parts = [loo_predictions(k, X, y, 0.05), loo_predictions(k, X, y, 0.05, cov, InputExpectation("girard"))]
+    for a, b in zip(whole, parts, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
+
+
 def test_pls_fit_separates_and_link_has_the_square_root() -> None:
     rng = np.random.default_rng(0)
     y = np.where(rng.random(400) < 0.5, 1.0, -1.0)
@@ -287,7 +303,10 @@ def test_the_link_is_fitted_on_more_problems_than_the_hyperparameters() -> None:
         cfg = MappingConfig(train=train, pls={"link": "loo", "loo_problems": n})
         params = MapBuilder.from_config(cfg, "gppol").fit(beams)
         assert params.info["link_problems"] == n and params.info["problems"] == 16
-    # a link fitted on held-out scans draws no extra leave-one-out problems
+    # a link fitted on held-out scans keeps the leave-one-out link it replaces, fitted the same way
+    cfg = MappingConfig(train=train, pls={"link": "loo", "loo_problems": 120})
+    loo = MapBuilder.from_config(cfg, "gpfol").fit(beams)
     cfg = MappingConfig(train=train, pls={"link": "holdout", "loo_problems": 120})
-    params = MapBuilder.from_config(cfg, "gpfol").fit(beams)
-    assert params.info["link_problems"] == 16 and params.info["pls"]["fit"] == "holdout"
+    held = MapBuilder.from_config(cfg, "gpfol").fit(beams)
+    assert held.info["pls"]["fit"] == "holdout" and held.info["link_problems"] == 120
+    assert held.info["pls"]["loo"] == {"alpha": loo.alpha, "beta": loo.beta, "mean_cap": loo.mean_cap}
