@@ -15,8 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import optimize, special
 
-from mapping.kernels import Kernel
-from mapping.noisy_kernels import InputExpectation
+from mapping.kernels import Kernel, SquaredExponentialKernel
+from mapping.noisy_kernels import GIRARD, InputExpectation, girard_se_matrix
 
 FloatArray = NDArray[np.float64]
 
@@ -50,10 +50,13 @@ def loo_predictions(
             for i in range(0, X.shape[0], LOO_CHUNK)
         ]
         return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    expectation = expectation or InputExpectation()
     if cov is None:
         K = kernel(X)
+    elif expectation.method == GIRARD and isinstance(kernel, SquaredExponentialKernel):
+        K = girard_se_matrix(kernel, X, cov)  # the same K, compiled
     else:
-        K = (expectation or InputExpectation()).matrix(kernel, X, cov)
+        K = expectation.matrix(kernel, X, cov)
     K = K + noise_var * np.eye(X.shape[-2])
     Kinv = np.linalg.inv(K)
     d = np.einsum("...ii->...i", Kinv)

@@ -93,6 +93,20 @@ def test_loo_predictions_in_batches_equal_one_batch(monkeypatch) -> None:
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14)
 
 
+def test_compiled_girard_matrix_equals_the_batched_one() -> None:
+    from mapping.noisy_kernels import InputExpectation, girard_se_matrix
+
+    rng = np.random.default_rng(8)
+    X = rng.normal(scale=0.5, size=(7, 12, 2))
+    A = rng.normal(scale=0.1, size=(7, 12, 2, 2))
+    cov = A @ np.swapaxes(A, -1, -2) + 1e-4 * np.eye(2)
+    cov[..., 0, 1] += 1e-3  # an asymmetric input: both forms read its symmetric part
+    k = make_kernel("se", {"sigma_f": 1.3, "length_scale": 0.4})
+    ours = girard_se_matrix(k, X, cov)
+    np.testing.assert_allclose(ours, InputExpectation("girard").matrix(k, X, cov), rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(ours, np.swapaxes(ours, -1, -2))
+
+
 def test_pls_fit_separates_and_link_has_the_square_root() -> None:
     rng = np.random.default_rng(0)
     y = np.where(rng.random(400) < 0.5, 1.0, -1.0)
