@@ -46,7 +46,6 @@ formulas per query.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -54,6 +53,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from mapping.core import _girard_se
 from mapping.kernels import Kernel, SquaredExponentialKernel
 
 FloatArray = NDArray[np.float64]
@@ -163,14 +163,12 @@ def _girard_se_matrix(sf2: float, L: float, X: FloatArray, cov: FloatArray, out:
         for i in range(X.shape[1]):
             out[q, i, i] = sf2
             for j in range(i + 1, X.shape[1]):
-                a00 = L + (cov[q, i, 0, 0] + cov[q, j, 0, 0])
-                a11 = L + (cov[q, i, 1, 1] + cov[q, j, 1, 1])
-                a01 = 0.5 * ((cov[q, i, 0, 1] + cov[q, j, 0, 1]) + (cov[q, i, 1, 0] + cov[q, j, 1, 0]))
-                det = a00 * a11 - a01 * a01
+                s00 = cov[q, i, 0, 0] + cov[q, j, 0, 0]
+                s11 = cov[q, i, 1, 1] + cov[q, j, 1, 1]
+                s01 = 0.5 * ((cov[q, i, 0, 1] + cov[q, j, 0, 1]) + (cov[q, i, 1, 0] + cov[q, j, 1, 0]))
                 dx = X[q, i, 0] - X[q, j, 0]
                 dy = X[q, i, 1] - X[q, j, 1]
-                quad = (dx * dx * a11 - 2.0 * dx * dy * a01 + dy * dy * a00) / det
-                k = sf2 * L / math.sqrt(det) * math.exp(-0.5 * quad)
+                k = sf2 * _girard_se(L, s00, s01, s11, dx, dy)  # the compiled core's eq. (19)
                 out[q, i, j] = k
                 out[q, j, i] = k
 
