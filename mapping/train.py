@@ -275,6 +275,18 @@ def training_scans(scan_ids: NDArray, n_scans: int, windows: int = 1) -> NDArray
     return ids[np.unique(np.clip(picked, 0, ids.size - 1))]
 
 
+def _local_problems(
+    index: BeamIndex, queries: FloatArray, k_occ: int, k_free: int, inputs: tuple[Any, Any] | None
+) -> tuple[FloatArray, FloatArray | None, FloatArray]:
+    """The local problems of ``queries``: inputs X (Q, n, 2), their covariances (Q, n, 2, 2) when ``inputs``
+    (the training beams' endpoint and free-segment Gaussians) are given (GPPOL, else None) and labels y."""
+    if inputs is None:
+        X, y, _ = index.local_problems(queries, k_occ, k_free)
+        return X, None, y
+    X, cov, y, _ = index.local_gaussians(queries, k_occ, k_free, *inputs)
+    return X, cov, y
+
+
 #: Offset of the seed of the link's extra problems from the training seed (a stream of its own).
 _LINK_SEED = 1_000_003
 
@@ -311,15 +323,11 @@ def train_gp(
     keep = np.isin(beams.scan_index, scans)
     train_beams = beams.subset(keep)
     index = BeamIndex.build(train_beams, index_cell_m, index_cell_m)
-    queries = sample_training_queries(train_beams, n_problems, seed)
-    cov = expectation = None
-    if inputs is None:
-        X, y, _ = index.local_problems(queries, k_occ, k_free)
-    else:
-        expectation = inputs.expectation
-        X, cov, y, _ = index.local_gaussians(
-            queries, k_occ, k_free, inputs.moments.subset(keep), inputs.free().subset(keep)
-        )
+    train_inputs = None if inputs is None else (inputs.moments.subset(keep), inputs.free().subset(keep))
+    expectation = None if inputs is None else inputs.expectation
+    X, cov, y = _local_problems(
+        index, sample_training_queries(train_beams, n_problems, seed), k_occ, k_free, train_inputs
+    )
     if X.shape[0] == 0:
         raise ValueError(f"no training neighbourhood with {k_occ} + {k_free} neighbours in its scans")
     kernel = make_kernel(kernel_name, kernel_values, kernel_bounds)
@@ -340,14 +348,9 @@ def train_gp(
     extra = 0 if link_problems is None else link_problems - n_problems
     if extra > 0:
         more = sample_training_queries(train_beams, extra, seed + _LINK_SEED)
-        if inputs is None:
-            X2, y2, _ = index.local_problems(more, k_occ, k_free)
-        else:
-            X2, cov2, y2, _ = index.local_gaussians(
-                more, k_occ, k_free, inputs.moments.subset(keep), inputs.free().subset(keep)
-            )
-            cov = np.concatenate([cov, cov2])
+        X2, cov2, y2 = _local_problems(index, more, k_occ, k_free, train_inputs)
         X, y = np.concatenate([X, X2]), np.concatenate([y, y2])
+        cov = None if cov is None else np.concatenate([cov, cov2])
     mu, var = loo_predictions(trained, X, y, nv, cov, expectation)
     alpha, beta, mean_cap = fit_pls(mu, var, y)
     info["link_problems"] = int(X.shape[0])
