@@ -85,12 +85,6 @@ def pls_probability(
     return special.ndtr(z)
 
 
-def _neg_loo_log_lik(params: FloatArray, mu: FloatArray, var: FloatArray, y: FloatArray) -> float:
-    alpha, beta = params
-    z = y * (alpha * mu + beta) / np.sqrt(1.0 + alpha**2 * var)
-    return -float(np.mean(special.log_ndtr(z)))
-
-
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 
 
@@ -111,8 +105,9 @@ def _log_ndtr(z: float) -> float:
 def _neg_loo_log_lik_st(
     s: float, t: float, mu: FloatArray, var: FloatArray, y: FloatArray
 ) -> tuple[float, float, float]:
-    """:func:`_neg_loo_log_lik` in the link's scale-free form ``Phi((mu + t) / sqrt(s^2 + var))`` (``s =
-    1 / alpha``, ``t = beta / alpha``) and its gradient w.r.t. s and t, in one pass over the points. In
+    """The mean negative LOO log-likelihood ``-log Phi(y (alpha mu + beta) / sqrt(1 + alpha^2 var))`` in the
+    link's scale-free form ``Phi((mu + t) / sqrt(s^2 + var))`` (``s = 1 / alpha``, ``t = beta / alpha``)
+    and its gradient w.r.t. s and t, in one pass over the points. In
     (alpha, beta) the likelihood of well-separated data runs along a flat ridge towards alpha -> inf with
     beta / alpha fixed, where L-BFGS-B crawls; in (s, t) that limit is the ordinary point s -> 0."""
     n = mu.size
