@@ -122,7 +122,7 @@ def test_pls_fit_separates_and_link_has_the_square_root() -> None:
     assert pls_probability(1.0, 3.0, 2.0, 0.5) == pytest.approx(norm.cdf(2.5 / np.sqrt(13.0)))
 
 
-def test_pls_link_gradient_matches_finite_differences() -> None:
+def test_pls_link_gradient_and_hessian_match_finite_differences() -> None:
     from scipy import optimize, special
 
     from mapping.pls import _neg_loo_log_lik_st
@@ -136,13 +136,17 @@ def test_pls_link_gradient_matches_finite_differences() -> None:
     mu = 0.7 * y + 0.4 * rng.normal(size=500)
     var = rng.uniform(0.01, 1.5, 500)
     for s, t in ((2.0, -0.6), (0.25, 0.2), (1e-3, 0.05)):
-        value, g_s, g_t = _neg_loo_log_lik_st(s, t, mu, var, y)
+        value, g_s, g_t, h_ss, h_st, h_tt = _neg_loo_log_lik_st(s, t, mu, var, y)
         # the same likelihood as (alpha, beta) = (1 / s, t / s)
         assert value == pytest.approx(_neg_loo_log_lik(np.array([1 / s, t / s]), mu, var, y), rel=1e-12)
         numeric = optimize.approx_fprime(
             np.array([s, t]), lambda x: _neg_loo_log_lik_st(x[0], x[1], mu, var, y)[0], 1e-7
         )
         np.testing.assert_allclose([g_s, g_t], numeric, rtol=1e-4, atol=1e-8)
+        hessian = optimize.approx_fprime(
+            np.array([s, t]), lambda x: np.array(_neg_loo_log_lik_st(x[0], x[1], mu, var, y)[1:3]), 1e-7
+        )
+        np.testing.assert_allclose([[h_ss, h_st], [h_st, h_tt]], hessian, rtol=1e-4, atol=1e-7)
 
 
 def test_compiled_log_ndtr_equals_scipy_over_its_whole_range() -> None:
@@ -167,14 +171,43 @@ def test_pls_fit_reaches_the_scale_free_limit_and_scouts_large_sets() -> None:
     alpha, beta, _ = fit_pls(mu, var, y, caps=(None,))
     assert alpha == pytest.approx(1 / pls.LINK_BOUNDS[0][0])  # the bound of s = 1 / alpha
     assert abs(beta / alpha) < 0.1
-    # the strided scouting finds the optimum that all four starts on all points find
+    # the scouting on a subset finds the optimum that all four starts on all points find
     assert y.size > pls.SCOUT_POINTS
-    full = min(
-        (pls._minimize_link(np.array([1 / a0, 0.0]), mu, var, y) for a0 in (0.5, 2.0, 8.0, 32.0)),
-        key=lambda r: r.fun,
-    )
+    full = min(pls._solve_link((1 / a0, 0.0), mu, var, y) for a0 in (0.5, 2.0, 8.0, 32.0))
     nll, _, _ = pls._fit_link(mu, var, y)
-    assert nll == pytest.approx(full.fun, abs=1e-9)
+    assert nll == pytest.approx(full[0], abs=1e-9)
+
+
+def test_pls_link_newton_fit_equals_a_quasi_newton_one() -> None:
+    """The projected Newton fit reaches, from each start, the best optimum L-BFGS-B reaches from any of them
+    with the same gradient: starts where the Hessian is indefinite or the slope flat (where L-BFGS-B may
+    stop early), and optima inside the box or on the bound of s."""
+    from scipy import optimize
+
+    from mapping import pls
+
+    def lbfgsb(start, mu, var, y):
+        return optimize.minimize(
+            lambda x: pls._neg_loo_log_lik_st(x[0], x[1], mu, var, y)[0],
+            x0=np.array(start),
+            jac=lambda x: np.array(pls._neg_loo_log_lik_st(x[0], x[1], mu, var, y)[1:3]),
+            method="L-BFGS-B",
+            bounds=pls.LINK_BOUNDS,
+            options={"ftol": 1e-15, "gtol": 1e-11},
+        )
+
+    rng = np.random.default_rng(8)
+    starts = ((2.0, 0.0), (0.125, 0.0), (50.0, 3.0))
+    for spread, s_on_bound in ((1.2, False), (0.25, True)):  # overlapping classes; separated ones
+        y = np.where(rng.random(3000) < 0.4, 1.0, -1.0)
+        mu = 0.6 * y + spread * rng.normal(size=y.size)
+        var = rng.uniform(0.01, 1.0, y.size)
+        ref = min((lbfgsb(x0, mu, var, y) for x0 in starts), key=lambda r: r.fun)
+        for x0 in starts:
+            ours = pls._solve_link(x0, mu, var, y)
+            assert ours[0] <= ref.fun + 1e-12
+            np.testing.assert_allclose(ours[1:], ref.x, rtol=1e-4, atol=1e-6)
+            assert (ours[1] == pls.LINK_BOUNDS[0][0]) == s_on_bound
 
 
 def _saturated_links(rng: np.random.Generator, overshoot_is_evidence: bool) -> tuple[np.ndarray, ...]:
