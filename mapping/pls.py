@@ -9,6 +9,7 @@ eqs. (11)-(12).
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numba as nb
 import numpy as np
@@ -240,18 +241,30 @@ def _fit_link(mu: FloatArray, var: FloatArray, y: FloatArray) -> tuple[float, fl
     on a random subset of that many and only the best goes on to all."""
     starts = [(1.0 / a0, 0.0) for a0 in (0.5, 2.0, 8.0, 32.0)]
     if mu.size > SCOUT_POINTS:
-        # a fixed random subset: a stride would keep the same neighbours of every local problem
-        few = np.sort(np.random.default_rng(0).choice(mu.size, SCOUT_POINTS, replace=False))
+        few = _scout_indices(mu.size)
         scouts = [_solve_link(x0, mu[few], var[few], y[few]) for x0 in starts]
         starts = [min(scouts)[1:]]
     nll, s, t = min(_solve_link(x0, mu, var, y) for x0 in starts)
     return nll, 1.0 / s, t / s
 
 
+@lru_cache(maxsize=4)
+def _scout_indices(n: int) -> NDArray[np.int64]:
+    """The sorted indices (SCOUT_POINTS,) of :func:`_fit_link`'s scouting subset of ``n`` points, drawn
+    once per size (every cap of :func:`fit_pls` scouts on the same points): a fixed random subset, where a
+    stride would keep the same neighbours of every local problem. Read-only."""
+    few = np.sort(np.random.default_rng(0).choice(n, SCOUT_POINTS, replace=False))
+    few.flags.writeable = False
+    return few
+
+
+#: :data:`LINK_BOUNDS` as :func:`_newton_link` reads them: (lo_s, hi_s, lo_t, hi_t).
+_LINK_BOUNDS_FLAT = np.array(LINK_BOUNDS, dtype=np.float64).ravel()
+
+
 def _solve_link(
     start_st: tuple[float, float], mu: FloatArray, var: FloatArray, y: FloatArray
 ) -> tuple[float, float, float]:
     """(objective, s, t) of one fit of the link from ``start_st`` within :data:`LINK_BOUNDS`."""
-    bounds = np.array(LINK_BOUNDS, dtype=np.float64).ravel()
-    f, s, t = _newton_link(float(start_st[0]), float(start_st[1]), mu, var, y, bounds)
+    f, s, t = _newton_link(float(start_st[0]), float(start_st[1]), mu, var, y, _LINK_BOUNDS_FLAT)
     return float(f), float(s), float(t)
