@@ -161,3 +161,28 @@ def test_carmen_intel_round_trip(tmp_path: Path, name: str) -> None:
         np.testing.assert_allclose(a.poses_xytheta[:, :2], b.poses_xytheta[:, :2], atol=1e-9, rtol=0)
         d = np.angle(np.exp(1j * (a.poses_xytheta[:, 2] - b.poses_xytheta[:, 2])))
         np.testing.assert_allclose(d, 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("suffix", [".db3", ".mcap", ".bag"])
+def test_cli_output_over_the_file_size_limit(tmp_path: Path, suffix: str) -> None:
+    """A bag that the file-size limit (as a full disk) stops mid-way: one line naming the output, exit 1,
+    nothing left behind (a .db3 bag's SQLite storage raises its own error type)."""
+    resource = pytest.importorskip("resource")
+    out = tmp_path / f"demo{suffix}"
+    limit = 200_000  # bytes; the demo bag's 360 scans of 681 beams take about 1 MB
+
+    def limited() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    result = subprocess.run(
+        [sys.executable, "run.py", "-q", "convert", str(data_file(DEMO_FIXED)), str(out)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        preexec_fn=limited,
+    )
+    assert result.returncode == 1, result.stderr
+    assert result.stderr.startswith(f"error: {out}: cannot write the bag ("), result.stderr
+    assert result.stderr.count("\n") == 1, result.stderr
+    assert list(tmp_path.iterdir()) == []
