@@ -181,7 +181,10 @@ def _write_rerun(args: argparse.Namespace, folder: Path) -> None:
     if args.rerun is not None:
         from pipeline.viewer import write_rerun
 
-        write_rerun(folder, args.rerun)
+        try:
+            write_rerun(folder, args.rerun)
+        except PipelineError as exc:  # the run folder itself is complete: say so, keep one line
+            raise PipelineError(f"{exc}; the run folder {folder} is complete") from None
 
 
 def cmd_simulate(args: argparse.Namespace, emit_json: EmitJson) -> int:

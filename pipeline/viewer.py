@@ -27,6 +27,10 @@ summary) when that folder is still there, and left out otherwise (the summary te
 from __future__ import annotations
 
 import math
+import os
+import shutil
+import subprocess
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,7 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from datasets import se2
-from datasets.errors import GpomError
+from datasets.errors import GpomError, first_line
 from datasets.files import atomic_output
 from datasets.types import Trajectory
 from mapping.exports import MapLayers, read_layers_npz
@@ -50,7 +54,7 @@ from pipeline.artifacts import (
     read_scans,
 )
 from pipeline.errors import PipelineError
-from pipeline.run_folder import read_summary, writable_ancestor
+from pipeline.run_folder import MIN_FREE_BYTES, read_summary, writable_ancestor
 from slam.trajectory_io import read_tum
 
 APPLICATION_ID = "gpom"
@@ -58,6 +62,12 @@ TIMELINE_STAMP = "stamp"
 TIMELINE_SCAN = "scan"
 ELLIPSE_SIGMA = 2.0
 ELLIPSE_VERTICES = 48
+#: The longest wait for the recording to reach its file (s); a stalled writer is then an error, not a hang.
+RERUN_FLUSH_TIMEOUT_S = 120.0
+#: How long a child that reported its recording may take to exit before it is killed (s).
+CHILD_EXIT_S = 30.0
+#: The child's line for a complete recording.
+RECORDED = "recorded"
 MAX_STATIC_ELLIPSES = 150
 MAP_Z_M = -0.05
 #: Stamps from 2001-09-09 on are read as Unix time (a timestamp timeline), earlier ones as time since an
@@ -276,30 +286,87 @@ def write_rerun(run_dir: Path, rrd_path: Path, ellipse_every: int | None = None)
 
     The layout is the module docstring's. ``ellipse_every`` spaces the static covariance ellipses (default:
     at most ``MAX_STATIC_ELLIPSES`` of them). The file is written beside its name and renamed when complete;
-    no viewer is started. PipelineError on a folder that is not a complete run or an unwritable output.
+    no viewer is started. The recording is made in a child process: when its disk fills, the SDK's file
+    writer can stop and leave the recording stream waiting for it forever, deaf to signals, and only a
+    process can be stopped from outside. PipelineError on a folder that is not a complete run or an output
+    that cannot be written.
     """
     rrd_path = Path(rrd_path)
     if rrd_path.suffix != ".rrd":
         raise PipelineError(f"{rrd_path}: a Rerun recording must end in .rrd")
     if ellipse_every is not None and ellipse_every < 1:
         raise PipelineError(f"ellipse_every must be at least 1, got {ellipse_every}")
-    view = read_run_view(run_dir)
-    import rerun as rr  # imported here: a run without --rerun never loads it
-
+    read_run_view(run_dir)  # a bad run folder fails here, before any process or file
     if not rrd_path.parent.is_dir():
         raise PipelineError(f"{rrd_path}: no such folder {rrd_path.parent}")
     try:
         with atomic_output(rrd_path, suffix=".rrd") as tmp:
-            rec = rr.RecordingStream(APPLICATION_ID)
-            rec.save(tmp, default_blueprint=_blueprint(view))
-            try:
-                _log_run(rec, view, ellipse_every)
-                rec.flush()
-            finally:
-                rec.disconnect()
+            failure = _record_in_child(Path(run_dir), tmp, ellipse_every)
+            if failure is not None:
+                raise PipelineError(f"{rrd_path}: cannot write ({failure})")
     except OSError as exc:
         raise PipelineError(f"{rrd_path}: cannot write ({exc.strerror or exc})") from None
     return rrd_path
+
+
+def _record_in_child(run_dir: Path, tmp: Path, ellipse_every: int | None) -> str | None:
+    """Record ``run_dir`` into ``tmp`` in a child interpreter (``python -m pipeline.viewer``); None on
+    success, else why it failed. The child reports in one line; it is then given ``CHILD_EXIT_S`` to exit
+    and killed after that, and killed at once on an interrupt. ``GPOM_TRACEBACK=1`` shows its stderr."""
+    repo = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (repo, os.environ.get("PYTHONPATH")) if p)}
+    env.setdefault("RUST_LOG", "off")  # the SDK's own log lines: the parent reports failures in one line
+    args = [sys.executable, "-m", "pipeline.viewer", str(run_dir), str(tmp), str(ellipse_every or 0)]
+    stderr = None if os.environ.get("GPOM_TRACEBACK") else subprocess.DEVNULL
+    child = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=stderr, env=env, text=True)
+    try:
+        report = child.stdout.readline().strip() if child.stdout is not None else ""
+        try:
+            child.wait(CHILD_EXIT_S)
+        except subprocess.TimeoutExpired:
+            pass
+    finally:
+        if child.poll() is None:
+            child.kill()
+        child.wait()
+        if child.stdout is not None:
+            child.stdout.close()
+    if report == RECORDED:
+        return None
+    return report or f"the recording process ended with status {child.returncode}"
+
+
+def _record(run_dir: Path, tmp: Path, ellipse_every: int | None) -> None:
+    """The child of :func:`_record_in_child`: writes the recording and prints :data:`RECORDED`; on a
+    failure prints why (one line) and leaves at once, status 1 (the recording stream's teardown would wait
+    for a stopped writer)."""
+    import rerun as rr  # imported here: a run without --rerun never loads it
+
+    try:
+        view = read_run_view(run_dir)
+        rec = rr.RecordingStream(APPLICATION_ID)
+        rec.save(tmp, default_blueprint=_blueprint(view))
+        _log_run(rec, view, ellipse_every)
+        # bounded: when the disk fills, the SDK's file writer can stop without telling the flush
+        rec.flush(timeout_sec=RERUN_FLUSH_TIMEOUT_S)
+        rec.disconnect()
+    except (OSError, RuntimeError, TimeoutError, GpomError) as exc:
+        # the SDK reports a failed file write as a RuntimeError ("File-writer thread shut down
+        # prematurely") or a flush timeout; judged while the partial file still holds its disk
+        print(_write_failure(exc, tmp), flush=True)
+        os._exit(1)
+    print(RECORDED, flush=True)
+
+
+def _write_failure(exc: BaseException, path: Path) -> str:
+    """Why ``path`` could not be written, in a few words: a full disk when its folder's disk is."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    try:
+        full = shutil.disk_usage(path.parent).free < MIN_FREE_BYTES
+    except OSError:
+        full = False
+    return "no space left on its disk" if full else first_line(exc)
 
 
 def _time_columns(stamps_ns: NDArray[np.int64]) -> list[Any]:
@@ -465,3 +532,7 @@ def _extent_xy_m(view: RunView) -> tuple[float, float, float, float]:
         boxes.append((*xy.min(axis=0), *xy.max(axis=0)))
     b = np.asarray(boxes, dtype=np.float64)
     return float(b[:, 0].min()), float(b[:, 1].min()), float(b[:, 2].max()), float(b[:, 3].max())
+
+
+if __name__ == "__main__":  # the child of _record_in_child: RUN_DIR TMP ELLIPSE_EVERY (0: the default)
+    _record(Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3]) or None)

@@ -334,3 +334,39 @@ def test_rerun_path_is_checked_before_any_work(tmp_path) -> None:
     assert proc.returncode == 1 and proc.stderr.count("\n") == 1, proc.stderr
     assert "mine.rrd: already exists" in proc.stderr
     assert existing.read_bytes() == b"user data" and not (tmp_path / "o").exists()
+
+
+def test_a_recording_the_disk_cannot_hold_is_one_error_and_no_file(run_dir, tmp_path) -> None:
+    """The SDK's file writer stopped by the file-size limit (as by a full disk): a PipelineError naming the
+    .rrd within the flush timeout, not a hang or the SDK's RuntimeError, and no partial file left."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("resource")
+    full = write_rerun(run_dir, tmp_path / "full.rrd")
+    limit = full.stat().st_size // 2
+    out = tmp_path / "half" / "a.rrd"
+    out.parent.mkdir()
+    script = (
+        "import resource, sys\n"
+        f"resource.setrlimit(resource.RLIMIT_FSIZE, ({limit}, {limit}))\n"
+        "import pipeline.viewer as viewer\n"
+        "from pipeline.errors import PipelineError\n"
+        "viewer.RERUN_FLUSH_TIMEOUT_S = 20.0\n"
+        "try:\n"
+        "    viewer.write_rerun(sys.argv[1], sys.argv[2])\n"
+        "except PipelineError as err:\n"
+        "    print('PipelineError:', err)\n"
+    )
+    repo = Path(__file__).resolve().parents[1]
+    proc = subprocess.run(
+        [sys.executable, "-c", script, str(run_dir), str(out)],
+        cwd=repo,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**__import__("os").environ, "RUST_LOG": "off"},
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.startswith(f"PipelineError: {out}: cannot write ("), proc.stdout
+    assert list(out.parent.iterdir()) == []
