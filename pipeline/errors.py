@@ -54,6 +54,8 @@ def stage_boundary(stage: str, subject: str | Path, name_known_errors: bool = Tr
         detail = " ".join(str(exc).split()) or "no message"
         if isinstance(exc, OSError) and exc.strerror:
             detail = f"{exc.strerror}" + (f": {exc.filename}" if exc.filename else "")
+            if exc.filename2:  # a copy or rename: where it went is often what failed (a full disk)
+                detail += f" -> {exc.filename2}"
         raise PipelineError(
             f"{name}: {stage} failed: {type(exc).__name__}: {detail[:300]} (GPOM_TRACEBACK=1 shows where)"
         ) from None

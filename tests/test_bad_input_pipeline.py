@@ -25,7 +25,7 @@ from datasets.errors import ConfigError, GpomError
 from mapping.build import MapBuilder
 from pipeline import run as run_module
 from pipeline.config import load_config
-from pipeline.errors import PipelineError
+from pipeline.errors import PipelineError, stage_boundary
 from pipeline.remap import remap_run
 from pipeline.run import run_pipeline
 from pipeline.run_folder import remove_stale_staging, staged_run_folder, write_summary
@@ -169,6 +169,20 @@ def test_disk_full_while_writing_is_one_line_and_leaves_nothing(small_log, tmp_p
     assert sorted(p.name for p in tmp_path.iterdir()) == ["config.yaml"]
 
 
+def test_a_failed_copy_names_where_it_was_going(tmp_path) -> None:
+    """A copy onto a full disk fails at its destination: the one line names both ends, not just the
+    (healthy) source."""
+    src, dst = tmp_path / "run" / "params.json", tmp_path / "full" / "params.json"
+    with (
+        pytest.raises(PipelineError) as err,
+        stage_boundary("remap", tmp_path / "run", name_known_errors=False),
+    ):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(src), None, str(dst))
+    assert str(err.value).startswith(
+        f"{tmp_path / 'run'}: remap failed: OSError: No space left on device: {src} -> {dst}"
+    )
+
+
 # --- staging folders of killed runs -----------------------------------------------------------------------
 
 
@@ -185,7 +199,9 @@ def test_staging_folders_of_dead_processes_are_removed(tmp_path) -> None:
         (tmp_path / name).mkdir()
         (tmp_path / name / "a.txt").write_text("x")
     (tmp_path / f"other.partial-{dead}").mkdir()  # another run folder's: not ours to touch
-    with staged_run_folder(out) as stage:
+    out.mkdir()  # an earlier run: beside it, a dead run's retired folder is garbage (without it, see
+    write_summary(out, {})  # test_run_folder: it is the old run and goes back)
+    with staged_run_folder(out, overwrite=True) as stage:
         write_summary(stage, {})
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left == sorted(["run", f"run.partial-{live}", "run.partial-x", f"other.partial-{dead}"])

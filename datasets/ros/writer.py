@@ -320,7 +320,8 @@ def open_bag_writer(path: str | Path, compress: bool = False) -> Iterator[BagWri
             raise DatasetError(f"{path}: appeared while writing; not overwriting it")
         os.replace(produced, path)
     except (rosbag1.WriterError, rosbag2.WriterError, OSError, sqlite3.Error) as exc:
-        # sqlite3.Error: a .db3 bag's storage ("database or disk is full", a file-size limit's "disk I/O error")
+        # sqlite3.Error: a .db3 bag's storage ("database or disk is full"; over a file-size limit "disk I/O
+        # error")
         raise DatasetError(f"{path}: cannot write the bag ({first_line(exc)})") from None
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
