@@ -154,7 +154,9 @@ def remove_stale_staging(out_dir: Path) -> list[Path]:
     """Remove the ``DIR.partial-PID`` / ``DIR.replaced-PID`` folders of ``out_dir`` whose process is dead.
 
     A run killed by SIGKILL (or a power cut) cannot clean up after itself; the next run into the same folder
-    does. Folders of live processes (another run in progress) are left alone. Returns what was removed.
+    does. Folders of live processes (another run in progress) are left alone. A ``DIR.replaced-PID`` where
+    ``DIR`` is missing (a run killed between retiring the old folder and renaming its own) is the old run: it
+    is renamed back to ``DIR``, not removed. Returns what was removed.
     """
     out_dir = Path(out_dir)
     removed = []
@@ -164,6 +166,9 @@ def remove_stale_staging(out_dir: Path) -> list[Path]:
         for path in out_dir.parent.glob(f"{glob.escape(out_dir.name)}.{kind}-*"):
             pid_text = path.name.rsplit("-", 1)[-1]
             if not pid_text.isdigit() or int(pid_text) == os.getpid() or _pid_alive(int(pid_text)):
+                continue
+            if kind == "replaced" and not out_dir.exists():  # killed between its two renames: the old
+                path.rename(out_dir)  # run is all there is, so it goes back
                 continue
             shutil.rmtree(path, ignore_errors=True)
             removed.append(path)
@@ -184,9 +189,9 @@ def staged_run_folder(
     run goes to ``DIR-2`` (the first free such name) and a PipelineError says so: neither is lost.
     """
     out_dir = Path(out_dir)
+    remove_stale_staging(out_dir)  # first: an old run it puts back is checked like any existing folder
     check_output_dir(out_dir, overwrite, reads=reads)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    remove_stale_staging(out_dir)
     staging = out_dir.with_name(f"{out_dir.name}.partial-{os.getpid()}")
     if staging.exists():
         shutil.rmtree(staging)
@@ -205,7 +210,12 @@ def staged_run_folder(
                 raise PipelineError(f"{out_dir}: {problem}; this run's result is kept in {kept}")
             retired = out_dir.with_name(f"{out_dir.name}.replaced-{os.getpid()}")
             out_dir.rename(retired)
-            staging.rename(out_dir)
+            try:
+                staging.rename(out_dir)
+            except BaseException:  # (an interrupt between the two renames) the old run goes back
+                if retired.exists() and not out_dir.exists():
+                    retired.rename(out_dir)
+                raise
             shutil.rmtree(retired, ignore_errors=True)
         else:
             staging.rename(out_dir)

@@ -114,3 +114,40 @@ def test_a_name_too_long_for_the_staging_folder_fails_before_any_work(tmp_path) 
     check_output_dir(tmp_path / ("a" * 230), overwrite=False)
     with pytest.raises(PipelineError, match=r"a name of 250 bytes is too long for its staging folder"):
         check_output_dir(tmp_path / ("a" * 250), overwrite=False)
+
+
+def test_an_interrupt_between_the_two_renames_of_an_overwrite_keeps_the_old_run(
+    tmp_path, monkeypatch
+) -> None:
+    """``--overwrite`` retires the old folder, then renames the new one into place. An interrupt between
+    the two puts the old run back; and a run killed there (the old run left as ``DIR.replaced-PID``, no
+    ``DIR``) gets it back from the next run's clean-up instead of losing it."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from pipeline.run_folder import remove_stale_staging
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "old.txt").write_text("old")
+    write_summary(out, {})
+    real_rename = Path.rename
+
+    def interrupted(self, target):
+        if self.name.startswith("run.partial-"):
+            raise KeyboardInterrupt
+        return real_rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", interrupted)
+    with pytest.raises(KeyboardInterrupt), staged_run_folder(out, overwrite=True) as stage:
+        write_summary(stage, {"new": 1})
+    monkeypatch.undo()
+    assert (out / "old.txt").read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
+
+    script = "import os; print(os.getpid())"  # a process that has ended: its pid names the orphan
+    dead = int(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True).stdout)
+    out.rename(tmp_path / f"run.replaced-{dead}")
+    assert remove_stale_staging(out) == [] and (out / "old.txt").read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]
