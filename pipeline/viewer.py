@@ -28,9 +28,11 @@ from __future__ import annotations
 
 import math
 import os
+import select
 import shutil
 import subprocess
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -68,6 +70,10 @@ RERUN_FLUSH_TIMEOUT_S = 120.0
 CHILD_EXIT_S = 30.0
 #: The child's line for a complete recording.
 RECORDED = "recorded"
+#: A recording whose file has not grown for STALL_S (s) on a disk with less than STALL_FREE_BYTES free has
+#: stalled: given up without waiting for the flush timeout.
+STALL_S = 10.0
+STALL_FREE_BYTES = 2**20
 MAX_STATIC_ELLIPSES = 150
 MAP_Z_M = -0.05
 #: Stamps from 2001-09-09 on are read as Unix time (a timestamp timeline), earlier ones as time since an
@@ -311,8 +317,9 @@ def write_rerun(run_dir: Path, rrd_path: Path, ellipse_every: int | None = None)
 
 def _record_in_child(run_dir: Path, tmp: Path, ellipse_every: int | None) -> str | None:
     """Record ``run_dir`` into ``tmp`` in a child interpreter (``python -m pipeline.viewer``); None on
-    success, else why it failed. The child reports in one line; it is then given ``CHILD_EXIT_S`` to exit
-    and killed after that, and killed at once on an interrupt. ``GPOM_TRACEBACK=1`` shows its stderr."""
+    success, else why it failed. The child reports in one line (:func:`_await_report`); after a complete
+    recording it is given ``CHILD_EXIT_S`` to exit, otherwise (and on an interrupt) it is killed at once.
+    ``GPOM_TRACEBACK=1`` shows its stderr."""
     repo = str(Path(__file__).resolve().parents[1])
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (repo, os.environ.get("PYTHONPATH")) if p)}
     env.setdefault("RUST_LOG", "off")  # the SDK's own log lines: the parent reports failures in one line
@@ -320,9 +327,9 @@ def _record_in_child(run_dir: Path, tmp: Path, ellipse_every: int | None) -> str
     stderr = None if os.environ.get("GPOM_TRACEBACK") else subprocess.DEVNULL
     child = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=stderr, env=env, text=True)
     try:
-        report = child.stdout.readline().strip() if child.stdout is not None else ""
+        report = _await_report(child, tmp)
         try:
-            child.wait(CHILD_EXIT_S)
+            child.wait(CHILD_EXIT_S if report == RECORDED else 0)  # a stalled child is stopped at once
         except subprocess.TimeoutExpired:
             pass
     finally:
@@ -334,6 +341,25 @@ def _record_in_child(run_dir: Path, tmp: Path, ellipse_every: int | None) -> str
     if report == RECORDED:
         return None
     return report or f"the recording process ended with status {child.returncode}"
+
+
+def _await_report(child: subprocess.Popen, tmp: Path) -> str:
+    """The child's one line, or why it was given up: its file stopped growing for ``STALL_S`` on a disk with
+    less than ``STALL_FREE_BYTES`` free (the SDK's writer stalls there until the flush times out)."""
+    assert child.stdout is not None
+    last_size, since = -1, time.monotonic()
+    while True:
+        ready, _, _ = select.select([child.stdout], [], [], 1.0)
+        if ready:
+            return child.stdout.readline().strip()
+        try:
+            size, free = tmp.stat().st_size, shutil.disk_usage(tmp.parent).free
+        except OSError:
+            continue
+        if size != last_size:
+            last_size, since = size, time.monotonic()
+        elif free < STALL_FREE_BYTES and time.monotonic() - since > STALL_S:
+            return "no space left on its disk"
 
 
 def _record(run_dir: Path, tmp: Path, ellipse_every: int | None) -> None:

@@ -370,3 +370,38 @@ def test_a_recording_the_disk_cannot_hold_is_one_error_and_no_file(run_dir, tmp_
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.startswith(f"PipelineError: {out}: cannot write ("), proc.stdout
     assert list(out.parent.iterdir()) == []
+
+
+def test_a_recording_that_stalls_on_a_full_disk_is_given_up(tmp_path, monkeypatch) -> None:
+    """A child whose file stops growing on a disk without room is given up after ``STALL_S``, not after the
+    SDK's flush timeout; on a disk with room the same silence is waited out."""
+    import subprocess
+    import sys
+    import time
+    from collections import namedtuple
+
+    import pipeline.viewer as viewer
+
+    usage = namedtuple("usage", "total used free")
+    tmp = tmp_path / "a.rrd"
+    tmp.write_bytes(b"x" * 100)
+    monkeypatch.setattr(viewer, "STALL_S", 1.0)
+    monkeypatch.setattr(viewer.shutil, "disk_usage", lambda _p: usage(10**9, 10**9, 0))
+    child = subprocess.Popen(
+        [sys.executable, "-c", "import time; time.sleep(60)"], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        t0 = time.monotonic()
+        assert viewer._await_report(child, tmp) == "no space left on its disk"
+        assert time.monotonic() - t0 < 10
+    finally:
+        child.kill()
+        child.wait()
+    monkeypatch.setattr(viewer.shutil, "disk_usage", lambda _p: usage(10**9, 0, 10**9))
+    script = "import time; time.sleep(3); print('recorded', flush=True)"
+    child = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        assert viewer._await_report(child, tmp) == viewer.RECORDED
+    finally:
+        child.kill()
+        child.wait()
