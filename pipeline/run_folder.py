@@ -209,8 +209,8 @@ def staged_run_folder(
                 staging.rename(kept)
                 raise PipelineError(f"{out_dir}: {problem}; this run's result is kept in {kept}")
             retired = out_dir.with_name(f"{out_dir.name}.replaced-{os.getpid()}")
-            out_dir.rename(retired)
             try:
+                out_dir.rename(retired)
                 staging.rename(out_dir)
             except BaseException:  # (an interrupt between the two renames) the old run goes back
                 if retired.exists() and not out_dir.exists():
