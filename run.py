@@ -450,9 +450,6 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.run_folder import note_interrupt, pending_interrupt
 
     keep_freed_memory()  # a big building's steps reuse each other's memory (pipeline.memory)
-    # the Rerun SDK's own log lines (Rust, coloured) would stand beside the one-line error of a failed .rrd
-    # write (pipeline.viewer); RUST_LOG set by the user still wins
-    os.environ.setdefault("RUST_LOG", "off")
 
     note_interrupt(None)
     in_main_thread = threading.current_thread() is threading.main_thread()

@@ -56,7 +56,7 @@ from pipeline.artifacts import (
     read_scans,
 )
 from pipeline.errors import PipelineError
-from pipeline.run_folder import MIN_FREE_BYTES, read_summary, writable_ancestor
+from pipeline.run_folder import read_summary, writable_ancestor
 from slam.trajectory_io import read_tum
 
 APPLICATION_ID = "gpom"
@@ -70,10 +70,13 @@ RERUN_FLUSH_TIMEOUT_S = 120.0
 CHILD_EXIT_S = 30.0
 #: The child's line for a complete recording.
 RECORDED = "recorded"
-#: A recording whose file has not grown for STALL_S (s) on a disk with less than STALL_FREE_BYTES free has
-#: stalled: given up without waiting for the flush timeout.
+#: The prefix of the child's line for a run folder file it could not read (the error's message follows).
+UNREADABLE = "unreadable: "
+#: A disk with less than this free is full (bytes): a write that failed or stalled there failed for room.
+FULL_DISK_BYTES = 2**20
+#: A recording whose file has not grown for STALL_S (s) on a full disk has stalled: given up without
+#: waiting for the flush timeout.
 STALL_S = 10.0
-STALL_FREE_BYTES = 2**20
 MAX_STATIC_ELLIPSES = 150
 MAP_Z_M = -0.05
 #: Stamps from 2001-09-09 on are read as Unix time (a timestamp timeline), earlier ones as time since an
@@ -168,11 +171,21 @@ def occupancy_u8(probability: NDArray, unknown: NDArray | None = None) -> NDArra
     return out
 
 
+def check_run_folder(run_dir: Path) -> dict[str, Any]:
+    """The summary of the complete run (or remap) folder ``run_dir``, checked to hold trajectories, without
+    reading the rest; PipelineError if it is not one."""
+    run_dir = Path(run_dir)
+    summary = read_summary(run_dir)
+    if not any((run_dir / TRAJECTORY_DIR).glob("*.tum")):
+        raise PipelineError(f"{run_dir}: not a complete run folder (no trajectory/*.tum)")
+    return summary
+
+
 def read_run_view(run_dir: Path) -> RunView:
     """Read what :func:`write_rerun` shows from a complete run (or remap) folder; PipelineError if the folder
     is not one or a file in it is damaged."""
     run_dir = Path(run_dir)
-    summary = read_summary(run_dir)
+    summary = check_run_folder(run_dir)
     notes: list[str] = []
     traj_dir = run_dir / TRAJECTORY_DIR
     trajectories: dict[str, tuple[NDArray[np.int64], NDArray[np.float64]]] = {}
@@ -181,8 +194,6 @@ def read_run_view(run_dir: Path) -> RunView:
             trajectories[path.stem] = read_tum(path)
         except GpomError as exc:
             raise PipelineError(str(exc) if str(path) in str(exc) else f"{path}: {exc}") from None
-    if not trajectories:
-        raise PipelineError(f"{run_dir}: not a complete run folder (no trajectory/*.tum)")
     main_name = (
         Path(OPTIMIZED_TUM).stem if Path(OPTIMIZED_TUM).stem in trajectories else next(iter(trajectories))
     )
@@ -302,12 +313,14 @@ def write_rerun(run_dir: Path, rrd_path: Path, ellipse_every: int | None = None)
         raise PipelineError(f"{rrd_path}: a Rerun recording must end in .rrd")
     if ellipse_every is not None and ellipse_every < 1:
         raise PipelineError(f"ellipse_every must be at least 1, got {ellipse_every}")
-    read_run_view(run_dir)  # a bad run folder fails here, before any process or file
+    check_run_folder(run_dir)  # a bad run folder fails here, before any process or file
     if not rrd_path.parent.is_dir():
         raise PipelineError(f"{rrd_path}: no such folder {rrd_path.parent}")
     try:
         with atomic_output(rrd_path, suffix=".rrd") as tmp:
             failure = _record_in_child(Path(run_dir), tmp, ellipse_every)
+            if failure is not None and failure.startswith(UNREADABLE):
+                raise PipelineError(failure.removeprefix(UNREADABLE))
             if failure is not None:
                 raise PipelineError(f"{rrd_path}: cannot write ({failure})")
     except OSError as exc:
@@ -322,8 +335,8 @@ def _record_in_child(run_dir: Path, tmp: Path, ellipse_every: int | None) -> str
     ``GPOM_TRACEBACK=1`` shows its stderr."""
     repo = str(Path(__file__).resolve().parents[1])
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (repo, os.environ.get("PYTHONPATH")) if p)}
-    env.setdefault("RUST_LOG", "off")  # the SDK's own log lines: the parent reports failures in one line
     args = [sys.executable, "-m", "pipeline.viewer", str(run_dir), str(tmp), str(ellipse_every or 0)]
+    # the SDK's own log lines go with the child's stderr: the parent reports a failure in one line
     stderr = None if os.environ.get("GPOM_TRACEBACK") else subprocess.DEVNULL
     child = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=stderr, env=env, text=True)
     try:
@@ -336,8 +349,7 @@ def _record_in_child(run_dir: Path, tmp: Path, ellipse_every: int | None) -> str
         if child.poll() is None:
             child.kill()
         child.wait()
-        if child.stdout is not None:
-            child.stdout.close()
+        child.stdout.close()
     if report == RECORDED:
         return None
     return report or f"the recording process ended with status {child.returncode}"
@@ -345,8 +357,7 @@ def _record_in_child(run_dir: Path, tmp: Path, ellipse_every: int | None) -> str
 
 def _await_report(child: subprocess.Popen, tmp: Path) -> str:
     """The child's one line, or why it was given up: its file stopped growing for ``STALL_S`` on a disk with
-    less than ``STALL_FREE_BYTES`` free (the SDK's writer stalls there until the flush times out)."""
-    assert child.stdout is not None
+    less than ``FULL_DISK_BYTES`` free (the SDK's writer stalls there until the flush times out)."""
     last_size, since = -1, time.monotonic()
     while True:
         ready, _, _ = select.select([child.stdout], [], [], 1.0)
@@ -358,7 +369,7 @@ def _await_report(child: subprocess.Popen, tmp: Path) -> str:
             continue
         if size != last_size:
             last_size, since = size, time.monotonic()
-        elif free < STALL_FREE_BYTES and time.monotonic() - since > STALL_S:
+        elif free < FULL_DISK_BYTES and time.monotonic() - since > STALL_S:
             return "no space left on its disk"
 
 
@@ -376,7 +387,10 @@ def _record(run_dir: Path, tmp: Path, ellipse_every: int | None) -> None:
         # bounded: when the disk fills, the SDK's file writer can stop without telling the flush
         rec.flush(timeout_sec=RERUN_FLUSH_TIMEOUT_S)
         rec.disconnect()
-    except (OSError, RuntimeError, TimeoutError, GpomError) as exc:
+    except GpomError as exc:  # a damaged file of the run folder: its own message, said as it is
+        print(UNREADABLE + " ".join(str(exc).split()), flush=True)
+        os._exit(1)
+    except (OSError, RuntimeError, TimeoutError) as exc:
         # the SDK reports a failed file write as a RuntimeError ("File-writer thread shut down
         # prematurely") or a flush timeout; judged while the partial file still holds its disk
         print(_write_failure(exc, tmp), flush=True)
@@ -389,7 +403,7 @@ def _write_failure(exc: BaseException, path: Path) -> str:
     if isinstance(exc, OSError) and exc.strerror:
         return exc.strerror
     try:
-        full = shutil.disk_usage(path.parent).free < MIN_FREE_BYTES
+        full = shutil.disk_usage(path.parent).free < FULL_DISK_BYTES
     except OSError:
         full = False
     return "no space left on its disk" if full else first_line(exc)

@@ -365,7 +365,6 @@ def test_a_recording_the_disk_cannot_hold_is_one_error_and_no_file(run_dir, tmp_
         capture_output=True,
         text=True,
         timeout=300,
-        env={**__import__("os").environ, "RUST_LOG": "off"},
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.startswith(f"PipelineError: {out}: cannot write ("), proc.stdout
@@ -405,3 +404,18 @@ def test_a_recording_that_stalls_on_a_full_disk_is_given_up(tmp_path, monkeypatc
     finally:
         child.kill()
         child.wait()
+
+
+def test_a_damaged_file_of_the_run_folder_is_named_as_such(run_dir, tmp_path) -> None:
+    """The parent checks the folder's shape only; a damaged file the recording process meets is reported
+    with its own message, not as a failure to write the .rrd."""
+    import shutil
+
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy)
+    layers = next((copy / "maps").glob("*/layers.npz"))
+    layers.write_bytes(b"not a zip")
+    with pytest.raises(PipelineError) as err:
+        write_rerun(copy, tmp_path / "a.rrd")
+    assert str(layers) in str(err.value) and "cannot write" not in str(err.value)
+    assert not list(tmp_path.glob("*.rrd")) and not list(tmp_path.glob(".a.rrd*"))
