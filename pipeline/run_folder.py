@@ -19,6 +19,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from datasets.errors import GpomError
 from datasets.files import write_text_atomic
 from pipeline.errors import PipelineError
 
@@ -219,9 +220,35 @@ def staged_run_folder(
             shutil.rmtree(retired, ignore_errors=True)
         else:
             staging.rename(out_dir)
+    except (GpomError, OSError) as exc:
+        shutil.rmtree(staging, ignore_errors=True)
+        named = _named_for_the_run(exc, staging, out_dir)
+        if named is exc:
+            raise
+        raise named from exc
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
+
+
+def _named_for_the_run(exc: GpomError | OSError, staging: Path, out_dir: Path) -> GpomError | OSError:
+    """``exc`` with the staging folder, which is gone when its message is read, named as the run folder it
+    was to become (``exc`` itself when it does not name the staging folder): a known error's message, an
+    OS error's file names."""
+    here, there = str(staging), str(out_dir)
+    if isinstance(exc, OSError):
+        names = [exc.filename, exc.filename2]
+        if exc.errno is None or not any(isinstance(n, str) and here in n for n in names):
+            return exc
+        moved = [n.replace(here, there) if isinstance(n, str) else n for n in names]
+        return type(exc)(exc.errno, exc.strerror, moved[0], None, moved[1])
+    text = str(exc)
+    if here not in text:
+        return exc
+    try:
+        return type(exc)(text.replace(here, there))
+    except TypeError:  # a subclass with another constructor
+        return PipelineError(text.replace(here, there))
 
 
 def _no_longer_replaceable(out_dir: Path, overwrite: bool, reads: Iterable[Path | None]) -> str | None:

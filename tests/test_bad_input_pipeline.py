@@ -164,9 +164,14 @@ def test_disk_full_while_writing_is_one_line_and_leaves_nothing(small_log, tmp_p
 
     monkeypatch.setattr("pipeline.run.write_maps", no_space)
     out = tmp_path / "run"
-    with pytest.raises(PipelineError, match=r"run: writing failed: OSError: No space left on device: .*png"):
+    with pytest.raises(
+        PipelineError, match=r"run: writing failed: OSError: No space left on device: .*png"
+    ) as err:
         run_pipeline(small_log, out, load_config(_config(tmp_path, {})))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["config.yaml"]
+    # the file is named where the run was going, not in the staging folder that no longer exists
+    assert ".partial-" not in str(err.value) and f"{out}{os.sep}" in str(err.value)
+    assert str(err.value).endswith(f"{os.sep}after{os.sep}occupancy.png (GPOM_TRACEBACK=1 shows where)")
 
 
 def test_a_failed_copy_names_where_it_was_going(tmp_path) -> None:

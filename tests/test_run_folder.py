@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import errno
+import os
+
 import pytest
 
 from pipeline.errors import PipelineError
@@ -26,6 +29,26 @@ def test_failure_and_interrupt_leave_nothing(tmp_path) -> None:
             (stage / "a.txt").write_text("x")
             raise exc
         assert list(tmp_path.iterdir()) == []
+
+
+def test_errors_name_the_run_folder_not_its_staging_folder(tmp_path) -> None:
+    """The staging folder is gone when the message is read: a known error's text and an OS error's file
+    names point where the run was going; other errors and messages pass unchanged."""
+    out = tmp_path / "run"
+    with pytest.raises(PipelineError) as err, staged_run_folder(out) as stage:
+        raise PipelineError(f"{stage / 'maps' / 'after.npz'}: cannot write (disk full)")
+    assert str(err.value) == f"{out / 'maps' / 'after.npz'}: cannot write (disk full)"
+    with pytest.raises(OSError) as err, staged_run_folder(out) as stage:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(stage / "a.png"), None, str(stage / "b"))
+    assert (err.value.errno, err.value.filename, err.value.filename2) == (
+        errno.ENOSPC,
+        str(out / "a.png"),
+        str(out / "b"),
+    )
+    with pytest.raises(FileNotFoundError) as err, staged_run_folder(out):
+        raise FileNotFoundError(errno.ENOENT, "gone", str(tmp_path / "input.bag"))
+    assert err.value.filename == str(tmp_path / "input.bag")
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_missing_summary_is_an_error(tmp_path) -> None:
