@@ -12,6 +12,7 @@ from __future__ import annotations
 import glob
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterable, Iterator
@@ -235,20 +236,25 @@ def _named_for_the_run(exc: GpomError | OSError, staging: Path, out_dir: Path) -
     """``exc`` with the staging folder, which is gone when its message is read, named as the run folder it
     was to become (``exc`` itself when it does not name the staging folder): a known error's message, an
     OS error's file names."""
-    here, there = str(staging), str(out_dir)
+    # the staging folder's name as a whole path component (not the prefix of another process's)
+    here = re.compile(re.escape(str(staging)) + r"(?![^\s/\\:;,'\")])")
+
+    def there(text: str) -> str:
+        return here.sub(lambda _match: str(out_dir), text)
+
     if isinstance(exc, OSError):
         names = [exc.filename, exc.filename2]
-        if exc.errno is None or not any(isinstance(n, str) and here in n for n in names):
+        if exc.errno is None or not any(isinstance(n, str) and here.search(n) for n in names):
             return exc
-        moved = [n.replace(here, there) if isinstance(n, str) else n for n in names]
+        moved = [there(n) if isinstance(n, str) else n for n in names]
         return type(exc)(exc.errno, exc.strerror, moved[0], None, moved[1])
     text = str(exc)
-    if here not in text:
+    if not here.search(text):
         return exc
     try:
-        return type(exc)(text.replace(here, there))
+        return type(exc)(there(text))
     except TypeError:  # a subclass with another constructor
-        return PipelineError(text.replace(here, there))
+        return PipelineError(there(text))
 
 
 def _no_longer_replaceable(out_dir: Path, overwrite: bool, reads: Iterable[Path | None]) -> str | None:

@@ -45,6 +45,9 @@ def test_errors_name_the_run_folder_not_its_staging_folder(tmp_path) -> None:
         str(out / "a.png"),
         str(out / "b"),
     )
+    with pytest.raises(PipelineError) as err, staged_run_folder(out) as stage:  # another process's folder
+        raise PipelineError(f"{stage}7/a.npz: cannot write")
+    assert str(err.value) == f"{tmp_path / 'run.partial-'}{os.getpid()}7/a.npz: cannot write"
     with pytest.raises(FileNotFoundError) as err, staged_run_folder(out):
         raise FileNotFoundError(errno.ENOENT, "gone", str(tmp_path / "input.bag"))
     assert err.value.filename == str(tmp_path / "input.bag")
