@@ -29,6 +29,15 @@ LIBRARY_ERRORS: tuple[type[BaseException], ...] = (
 )
 
 
+def reworded(exc: GpomError, message: str) -> GpomError:
+    """A known error of ``exc``'s class saying ``message`` (a PipelineError when that class takes other
+    arguments)."""
+    try:
+        return type(exc)(message)
+    except TypeError:  # a subclass with another constructor
+        return PipelineError(message)
+
+
 @contextmanager
 def stage_boundary(stage: str, subject: str | Path, name_known_errors: bool = True) -> Iterator[None]:
     """Turn a library exception raised in ``stage`` of the work on ``subject`` into one PipelineError line.
@@ -43,11 +52,7 @@ def stage_boundary(stage: str, subject: str | Path, name_known_errors: bool = Tr
     except GpomError as exc:
         if not name_known_errors or name in str(exc):
             raise
-        try:
-            named = type(exc)(f"{name}: {exc}")
-        except TypeError:  # a subclass with another constructor
-            named = PipelineError(f"{name}: {exc}")
-        raise named from exc
+        raise reworded(exc, f"{name}: {exc}") from exc
     except LIBRARY_ERRORS as exc:
         if os.environ.get("GPOM_TRACEBACK"):
             raise

@@ -22,7 +22,7 @@ from typing import Any
 
 from datasets.errors import GpomError
 from datasets.files import write_text_atomic
-from pipeline.errors import PipelineError
+from pipeline.errors import PipelineError, reworded
 
 SUMMARY_NAME = "summary.json"
 
@@ -221,14 +221,12 @@ def staged_run_folder(
             shutil.rmtree(retired, ignore_errors=True)
         else:
             staging.rename(out_dir)
-    except (GpomError, OSError) as exc:
+    except BaseException as exc:
         shutil.rmtree(staging, ignore_errors=True)
-        named = _named_for_the_run(exc, staging, out_dir)
-        if named is exc:
-            raise
-        raise named from exc
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
+        if isinstance(exc, (GpomError, OSError)):
+            named = _named_for_the_run(exc, staging, out_dir)
+            if named is not exc:
+                raise named from exc
         raise
 
 
@@ -249,12 +247,7 @@ def _named_for_the_run(exc: GpomError | OSError, staging: Path, out_dir: Path) -
         moved = [there(n) if isinstance(n, str) else n for n in names]
         return type(exc)(exc.errno, exc.strerror, moved[0], None, moved[1])
     text = str(exc)
-    if not here.search(text):
-        return exc
-    try:
-        return type(exc)(there(text))
-    except TypeError:  # a subclass with another constructor
-        return PipelineError(there(text))
+    return reworded(exc, there(text)) if here.search(text) else exc
 
 
 def _no_longer_replaceable(out_dir: Path, overwrite: bool, reads: Iterable[Path | None]) -> str | None:
