@@ -630,12 +630,20 @@ def _score_pyramid(
     nz_c0: int,
     nz_c1: int,
     buffer: NDArray[np.float32],
+    tiles: NDArray[np.bool_],
+    tile: int,
 ):
     """(depth + 1, h, w) max-pooled scores of the window ``score[r0:r0+h, c0:c0+w]``, reading only the cells
     ``[nz_r0, nz_r1) x [nz_c0, nz_c1)`` of ``score`` (the rest of it, and cells outside the grid, count as
     0): level ``d`` holds at ``(y, x)`` the largest score of the cells ``[y, y + 2^d) x [x, x + 2^d)``.
-    Scores are >= 0, so a pool reaching past the window takes the max of the cells inside it. The result
-    is a view of the flat ``buffer`` when it is large enough (every cell is written), else a new array."""
+    Scores are >= 0, so a pool reaching past the window takes the max of the cells inside it.
+
+    Only the cells of the ``tile`` x ``tile`` tiles marked in ``tiles`` (ceil(h / tile), ceil(w / tile))
+    are computed on every level (``tile >= 2^depth``); the others are left as they were (a single search
+    reads no other cell, :func:`_reached_tiles`). A level-``d`` cell needs level ``d - 1`` up to
+    ``2^(d-1)`` cells above and to the right, so level ``d`` is computed ``2^depth - 2^d`` cells beyond the
+    marked tiles in both directions. The result is a view of the flat ``buffer`` when it is large enough,
+    else a new array."""
     gh, gw = score.shape
     size = (depth + 1) * h * w
     if buffer.shape[0] >= size:
@@ -646,64 +654,81 @@ def _score_pyramid(
     yb = min(nz_r1, gh)
     xa = max(max(nz_c0, 0) - c0, 0)
     xb = min(min(nz_c1, gw) - c0, w)
+    n_ty, n_tx = tiles.shape
+    cols = np.zeros(n_tx, dtype=np.bool_)
     # one pass from the top row down, every level of a row at once: level d of row y needs level d - 1 of
     # rows y and y + 2^(d-1), both done, and still in cache
     for y in range(h - 1, -1, -1):
         gy = r0 + y
-        row = out[0, y]
-        if gy < ya or gy >= yb or xa >= xb:
-            row[:] = 0.0
-        else:
-            row[:xa] = 0.0
-            row[xa:xb] = score[gy, c0 + xa : c0 + xb]
-            row[xb:] = 0.0
-        for d in range(1, depth + 1):
-            half = 1 << (d - 1)
-            xe = max(w - half, 0)
-            p0 = out[d - 1, y]
-            row = out[d, y]
-            if y + half < h:
-                p1 = out[d - 1, y + half]
-                _max4_rows(p0[:xe], p0[half:], p1[:xe], p1[half:], row[:xe])
-                _max2_rows(p0[xe:], p1[xe:], row[xe:])
-            else:
-                _max2_rows(p0[:xe], p0[half:], row[:xe])
-                row[xe:] = p0[xe:]
+        for d in range(depth + 1):
+            # the tile columns of row y on level d: those of the tile rows it lies in or extends
+            ext = (1 << depth) - (1 << d)
+            cols[:] = False
+            for ty in range(max((y - ext) // tile, 0), min(y // tile, n_ty - 1) + 1):
+                for tx in range(n_tx):
+                    cols[tx] |= tiles[ty, tx]
+            half = (1 << (d - 1)) if d > 0 else 0
+            tx = 0
+            while tx < n_tx:
+                if not cols[tx]:
+                    tx += 1
+                    continue
+                run = tx
+                while tx < n_tx and cols[tx]:
+                    tx += 1
+                s = run * tile
+                e = min(tx * tile + ext, w)
+                row = out[d, y]
+                if d == 0:
+                    if gy < ya or gy >= yb or xa >= xb:
+                        row[s:e] = 0.0
+                    else:
+                        a = min(max(xa, s), e)
+                        b = max(min(xb, e), a)
+                        row[s:a] = 0.0
+                        row[a:b] = score[gy, c0 + a : c0 + b]
+                        row[b:e] = 0.0
+                    continue
+                p0 = out[d - 1, y]
+                m = min(max(w - half, s), e)  # x + half inside the window below m
+                if y + half < h:
+                    p1 = out[d - 1, y + half]
+                    _max4_rows(p0[s:m], p0[s + half : m + half], p1[s:m], p1[s + half : m + half], row[s:m])
+                    _max2_rows(p0[m:e], p1[m:e], row[m:e])
+                else:
+                    _max2_rows(p0[s:m], p0[s + half : m + half], row[s:m])
+                    row[m:e] = p0[m:e]
     return out
 
 
+#: Side in cells of the tiles in which a single search builds its pyramid (:func:`_reached_tiles`).
+PYRAMID_TILE_CELLS = 32
+
+#: Searches over a wider heading window build their whole pyramid: each point's arc then crosses most of
+#: the tiles (a sparse log without wheels, searched over every heading), so marking them would cost more
+#: than it saves.
+LAZY_MAX_WINDOW_RAD = 1.0
+
+
 @nb.njit(cache=True)
-def _bnb(
-    pyramid: NDArray[np.float32],
-    x0: float,
-    y0: float,
-    res: float,
+def _rotated_cells(
     points: FloatArray,
     cx: float,
     cy: float,
     ctheta: float,
-    n_lin: int,
     n_ang: int,
     ang_step: float,
-    min_total: float,
-    cost_lin: float,
-    cost_ang: float,
-    row0: int = 0,
-    col0: int = 0,
+    x0: float,
+    y0: float,
+    res: float,
+    row0: int,
+    col0: int,
 ):
-    """Exact maximum of the summed score minus the motion cost ``cost_lin * (dx^2 + dy^2) + cost_ang *
-    dtheta^2`` (offsets in cells and rad) over the translations ``+-n_lin`` cells and rotations
-    ``ctheta + a * ang_step``, ``|a| <= n_ang``, by branch and bound (Hess et al., ICRA 2016, section V.C; a
-    node's bound subtracts the least cost over its offsets). ``pyramid`` is :func:`_score_pyramid` of the
-    part from cell ``(row0, col0)`` on of the window whose lower-left cell is at ``(x0, y0)`` (the window's
-    cells outside that part score 0). Returns ``(found, objective, x, y, theta, nodes,
-    score)``; ``found`` is False when no objective exceeds ``min_total``."""
-    depth = pyramid.shape[0] - 1
-    h = pyramid.shape[1]
-    w = pyramid.shape[2]
-    p = points.shape[0]
+    """``(ixs, iys)`` (2 n_ang + 1, P) int64: the cell of each point at zero translation offset, rotated by
+    ``ctheta + a * ang_step`` for ``a = -n_ang .. n_ang``, in the pyramid part stored from cell ``(row0,
+    col0)`` of the window whose lower-left cell is at ``(x0, y0)``."""
     n_rot = 2 * n_ang + 1
-    # discretised rotated points (cell of the point at zero translation offset)
+    p = points.shape[0]
     ixs = np.empty((n_rot, p), dtype=np.int64)
     iys = np.empty((n_rot, p), dtype=np.int64)
     for a in range(n_rot):
@@ -717,6 +742,62 @@ def _bnb(
             # index in the stored part; a point outside that part scores 0, so skipping it changes no sum
             ixs[a, k] = math.floor((qx - x0) / res) - col0
             iys[a, k] = math.floor((qy - y0) / res) - row0
+    return ixs, iys
+
+
+@nb.njit(cache=True)
+def _reached_tiles(
+    ixs: NDArray[np.int64], iys: NDArray[np.int64], n_lin: int, h: int, w: int, tile: int
+) -> NDArray[np.bool_]:
+    """(ceil(h / tile), ceil(w / tile)) the ``tile`` x ``tile`` tiles of an (h, w) pyramid part that
+    :func:`_bnb` reads on some level: those within ``+-n_lin`` cells of a rotated point's cell
+    (:func:`_rotated_cells`), every node's offsets lying in that window."""
+    n_ty = (h + tile - 1) // tile
+    n_tx = (w + tile - 1) // tile
+    out = np.zeros((max(n_ty, 1), max(n_tx, 1)), dtype=np.bool_)
+    for a in range(ixs.shape[0]):
+        for k in range(ixs.shape[1]):
+            ya = max(iys[a, k] - n_lin, 0)
+            yb = min(iys[a, k] + n_lin, h - 1)
+            xa = max(ixs[a, k] - n_lin, 0)
+            xb = min(ixs[a, k] + n_lin, w - 1)
+            if ya > yb or xa > xb:
+                continue
+            for ty in range(ya // tile, yb // tile + 1):
+                for tx in range(xa // tile, xb // tile + 1):
+                    out[ty, tx] = True
+    return out
+
+
+@nb.njit(cache=True)
+def _bnb(
+    pyramid: NDArray[np.float32],
+    ixs: NDArray[np.int64],
+    iys: NDArray[np.int64],
+    res: float,
+    cx: float,
+    cy: float,
+    ctheta: float,
+    n_lin: int,
+    n_ang: int,
+    ang_step: float,
+    min_total: float,
+    cost_lin: float,
+    cost_ang: float,
+):
+    """Exact maximum of the summed score minus the motion cost ``cost_lin * (dx^2 + dy^2) + cost_ang *
+    dtheta^2`` (offsets in cells and rad) over the translations ``+-n_lin`` cells and rotations
+    ``ctheta + a * ang_step``, ``|a| <= n_ang``, by branch and bound (Hess et al., ICRA 2016, section V.C; a
+    node's bound subtracts the least cost over its offsets). ``pyramid`` is :func:`_score_pyramid` of a
+    part of the window, ``ixs``, ``iys`` the points' cells in that part at each rotation
+    (:func:`_rotated_cells` about the centre ``(cx, cy, ctheta)``; the window's cells outside the part score
+    0). Returns ``(found, objective, x, y, theta, nodes, score)``; ``found`` is False when no objective
+    exceeds ``min_total``."""
+    depth = pyramid.shape[0] - 1
+    h = pyramid.shape[1]
+    w = pyramid.shape[2]
+    p = ixs.shape[1]
+    n_rot = 2 * n_ang + 1
     # roots: every rotation x the top-level translation cells covering the window
     step = 1 << depth
     n_top = (2 * n_lin + 1 + step - 1) // step
@@ -860,6 +941,32 @@ class ScorePyramid:
         ``(xmin, ymin, xmax, ymax)``; cells outside the grid score 0. ``buffer`` (flat float32): memory to
         build the levels in when large enough (a pyramid used once, then discarded: no fresh pages to
         fault in); the pyramid is then valid until the buffer's next use."""
+        return _PyramidLayout.of_grid(grid, depth, pool, bounds_xy_m).build(buffer)
+
+
+@dataclass(frozen=True)
+class _PyramidLayout:
+    """Where a :class:`ScorePyramid` of a grid lies before it is built: the score array ``src`` it reads
+    (the grid's, or its max-pooled copy), the stored part's first cell ``(r0, c0)`` and size ``(h, w)`` in
+    ``src``'s cells, the part of ``src`` that can score above 0 ``nz = (r0, r1, c0, c1)``, and the
+    pyramid's ``depth``, ``origin_xy_m``, ``resolution_m`` and ``offset_rc``."""
+
+    src: NDArray[np.float32]
+    r0: int
+    c0: int
+    h: int
+    w: int
+    nz: tuple[int, int, int, int]
+    depth: int
+    origin_xy_m: FloatArray
+    resolution_m: float
+    offset_rc: tuple[int, int]
+
+    @classmethod
+    def of_grid(
+        cls, grid: PointGrid, depth: int, pool: int = 1, bounds_xy_m: FloatArray | None = None
+    ) -> _PyramidLayout:
+        """The layout of :meth:`ScorePyramid.of_grid` (same arguments)."""
         res = grid.resolution_m
         ox, oy = float(grid.origin_xy_m[0]), float(grid.origin_xy_m[1])
         gh, gw = grid.shape
@@ -893,11 +1000,25 @@ class ScorePyramid:
         sc0, sc1 = max(nz[2] - wc0 - (pad - 1), 0), min(nz[3] - wc0, big_w)
         if sr1 <= sr0 or sc1 <= sc0:
             sr0 = sr1 = sc0 = sc1 = 0
-        buf = np.empty(0, dtype=np.float32) if buffer is None else buffer
-        levels = _score_pyramid(src, wr0 + sr0, wc0 + sc0, sr1 - sr0, sc1 - sc0, depth, *nz, buf)
         cres = res * pool
         origin = np.array([ox + c0 * res - pad * cres, oy + r0 * res - pad * cres])
-        return cls(levels, origin, cres, (sr0, sc0))
+        return cls(src, wr0 + sr0, wc0 + sc0, sr1 - sr0, sc1 - sc0, nz, depth, origin, cres, (sr0, sc0))
+
+    def build(
+        self,
+        buffer: NDArray[np.float32] | None = None,
+        tiles: NDArray[np.bool_] | None = None,
+        tile: int = PYRAMID_TILE_CELLS,
+    ) -> ScorePyramid:
+        """The pyramid, whole, or only on the ``tile`` x ``tile`` tiles of its stored part marked in
+        ``tiles`` (:func:`_reached_tiles`: a pyramid for one search; its other cells hold garbage)."""
+        buf = np.empty(0, dtype=np.float32) if buffer is None else buffer
+        if tiles is None:
+            tiles, tile = np.ones((1, 1), dtype=np.bool_), max(self.h, self.w, 1)
+        levels = _score_pyramid(
+            self.src, self.r0, self.c0, self.h, self.w, self.depth, *self.nz, buf, tiles, tile
+        )
+        return ScorePyramid(levels, self.origin_xy_m, self.resolution_m, self.offset_rc)
 
 
 def bnb_depth(window_xy_m: float, resolution_m: float) -> int:
@@ -945,6 +1066,7 @@ def branch_and_bound_search(
         theta_step_rad = float(np.clip(res / max(r_max, 1e-3), math.radians(0.05), math.radians(1.0)))
     n_lin = max(math.ceil(window_xy_m / res), 0)
     n_ang = max(math.ceil(window_theta_rad / theta_step_rad), 0)
+    layout = None
     if isinstance(grid, ScorePyramid):
         pyramid = grid
     else:
@@ -957,20 +1079,34 @@ def branch_and_bound_search(
         grow = r_max * n_ang * theta_step_rad + window_xy_m + 2 * res
         box[:2] = np.maximum(box[:2], at_centre.min(axis=0) - grow)
         box[2:] = np.minimum(box[2:], at_centre.max(axis=0) + grow)
-        buf = grid._pyramid_buffer
-        pyramid = ScorePyramid.of_grid(grid, bnb_depth(window_xy_m, res), pool, box, buf)
-        if pyramid.levels.size > buf.size:  # built in new memory: the next search reuses it
-            grid._pyramid_buffer = pyramid.levels.reshape(-1)
+        # built only on the tiles some transformed point reaches, in the grid's reused memory
+        layout = _PyramidLayout.of_grid(grid, bnb_depth(window_xy_m, res), pool, box)
     cost_lin = cost_ang = 0.0
     if prior_weight > 0 and prior_sigma_xy_m and prior_sigma_theta_rad:
         cost_lin = 0.5 * prior_weight * n * (res / prior_sigma_xy_m) ** 2
         cost_ang = 0.5 * prior_weight * n / prior_sigma_theta_rad**2
+    place = pyramid if layout is None else layout  # the pyramid's origin and stored part
+    (x0, y0), (row0, col0) = place.origin_xy_m, place.offset_rc
+    ixs, iys = _rotated_cells(pts, c[0], c[1], c[2], n_ang, theta_step_rad, x0, y0, res, row0, col0)
+    if layout is not None:
+        buf = grid._pyramid_buffer
+        # marking the reached tiles costs about as much per transformed point as the pyramid per cell: it
+        # pays where the points are few against the cells (not so a wide heading search of a dense scan),
+        # and where their arcs over the headings leave most tiles out (not so beyond LAZY_MAX_WINDOW_RAD)
+        few = ixs.size * 4 < (layout.depth + 1) * layout.h * layout.w
+        if few and window_theta_rad < LAZY_MAX_WINDOW_RAD:
+            tile = max(PYRAMID_TILE_CELLS, 1 << layout.depth)
+            tiles = _reached_tiles(ixs, iys, n_lin, layout.h, layout.w, tile)
+            pyramid = layout.build(buf, tiles, tile)
+        else:
+            pyramid = layout.build(buf)
+        if pyramid.levels.size > buf.size:  # built in new memory: the next search reuses it
+            grid._pyramid_buffer = pyramid.levels.reshape(-1)
     found, _, x, y, th, _, score = _bnb(
         pyramid.levels,
-        float(pyramid.origin_xy_m[0]),
-        float(pyramid.origin_xy_m[1]),
+        ixs,
+        iys,
         res,
-        pts,
         c[0],
         c[1],
         c[2],
@@ -980,8 +1116,6 @@ def branch_and_bound_search(
         min_score * n - 1e-9 if min_score > 0 else -np.inf,
         cost_lin,
         cost_ang,
-        pyramid.offset_rc[0],
-        pyramid.offset_rc[1],
     )
     if not found:
         return SearchResult(c.copy(), 0.0)

@@ -11,7 +11,16 @@ import numpy as np
 import pytest
 from numpy.lib.stride_tricks import sliding_window_view
 
-from slam.scan_matching import PointGrid, ScorePyramid, bnb_depth, branch_and_bound_search
+from slam.scan_matching import (
+    PYRAMID_TILE_CELLS,
+    PointGrid,
+    ScorePyramid,
+    _PyramidLayout,
+    _reached_tiles,
+    _rotated_cells,
+    bnb_depth,
+    branch_and_bound_search,
+)
 
 
 def reference_levels(
@@ -192,3 +201,72 @@ def se2_inverse_transform(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     c, s = math.cos(pose[2]), math.sin(pose[2])
     d = points - pose[:2]
     return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
+
+
+def walls_grid(rng: np.random.Generator) -> tuple[PointGrid, np.ndarray, np.ndarray]:
+    """A 12 m x 12 m grid holding a few long walls (most of the box around a scan is empty), a scan (P, 2)
+    of them and the pose (3,) near the middle it was taken from."""
+    grid = PointGrid(np.array([-6.0, -6.0]), (240, 240))
+    for _ in range(5):
+        a, b = rng.uniform(-5.5, 5.5, (2, 2))
+        t = rng.uniform(0.0, 1.0, (80, 1))
+        pts = a + t * (b - a)
+        grid.insert(pts, np.zeros_like(pts))
+    center = np.append(rng.uniform(-0.5, 0.5, 2), rng.uniform(-0.3, 0.3))
+    scan = se2_inverse_transform(center, grid.points_xy[rng.choice(len(grid), 70)])
+    return grid, scan + rng.normal(0.0, 0.02, scan.shape), center
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_pyramid_built_for_one_search_holds_every_cell_the_search_reads(seed: int) -> None:
+    """A search builds its pyramid only on the tiles its transformed points reach: every cell a node of the
+    search can read (any rotation, any offset within the window) lies in a built tile, and the built
+    tiles hold the whole pyramid's values on every level."""
+    rng = np.random.default_rng(seed)
+    grid, scan, _ = walls_grid(rng)
+    window_m = float(rng.choice([0.2, 0.45, 1.0]))
+    step = math.radians(0.5)
+    n_ang = int(rng.integers(0, 8))
+    res = grid.resolution_m
+    n_lin = math.ceil(window_m / res)
+    box = np.array([-7.0, -7.0, 7.0, 7.0])
+    layout = _PyramidLayout.of_grid(grid, bnb_depth(window_m, res), 1, box)
+    (x0, y0), (row0, col0) = layout.origin_xy_m, layout.offset_rc
+    ixs, iys = _rotated_cells(scan, 0.0, 0.0, 0.0, n_ang, step, x0, y0, res, row0, col0)
+    tile = max(PYRAMID_TILE_CELLS, 1 << layout.depth)
+    tiles = _reached_tiles(ixs, iys, n_lin, layout.h, layout.w, tile)
+    assert 0 < tiles.sum() < tiles.size  # the walls leave tiles out
+    # every cell read: a rotated point's cell shifted by an offset within the window, inside the part
+    offsets = np.arange(-n_lin, n_lin + 1)
+    jy = (iys[:, :, None, None] + offsets[:, None]).ravel()
+    jx = (ixs[:, :, None, None] + offsets[None, :]).ravel()
+    inside = (jy >= 0) & (jy < layout.h) & (jx >= 0) & (jx < layout.w)
+    assert tiles[jy[inside] // tile, jx[inside] // tile].all()
+    lazy = layout.build(np.full((layout.depth + 1) * layout.h * layout.w, np.nan, np.float32), tiles, tile)
+    whole = layout.build()
+    cells = np.kron(tiles, np.ones((tile, tile), dtype=bool))[: layout.h, : layout.w]
+    assert np.isnan(lazy.levels[:, ~cells]).any()  # not built: still the buffer's NaN
+    assert np.array_equal(lazy.levels[:, cells], whole.levels[:, cells])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_search_reads_no_cell_its_pyramid_left_unbuilt(seed: int) -> None:
+    """The grid's pyramid memory filled with NaN first: the search returns exactly the whole-window
+    search's pose and score (a NaN read would change them)."""
+    rng = np.random.default_rng(100 + seed)
+    grid, scan, true_pose = walls_grid(rng)
+    center = true_pose + np.array([0.15, -0.2, 0.05])
+    window_m, window_rad, step = 0.6, 0.1, math.radians(0.5)
+    grid._pyramid_buffer = np.full(4_000_000, np.nan, dtype=np.float32)
+    kw = {"prior_sigma_xy_m": 0.5, "prior_sigma_theta_rad": 0.5, "prior_weight": 0.05}
+    found = branch_and_bound_search(grid, scan, center, window_m, window_rad, step, **kw)
+    assert np.isnan(grid._pyramid_buffer).any()  # built in that memory, part of it left alone
+    res = grid.resolution_m
+    reach = float(np.max(np.hypot(scan[:, 0], scan[:, 1]))) + window_m + 2 * res
+    box = np.array([center[0] - reach, center[1] - reach, center[0] + reach, center[1] + reach])
+    levels, origin, cres = reference_levels(grid, bnb_depth(window_m, res), 1, box)
+    whole = branch_and_bound_search(
+        ScorePyramid(levels, origin, cres), scan, center, window_m, window_rad, step, **kw
+    )
+    assert np.isfinite(found.score) and found.score > 0.0
+    assert np.array_equal(whole.pose_xytheta, found.pose_xytheta) and whole.score == found.score
