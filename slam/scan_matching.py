@@ -639,11 +639,11 @@ def _score_pyramid(
     Scores are >= 0, so a pool reaching past the window takes the max of the cells inside it.
 
     Only the cells of the ``tile`` x ``tile`` tiles marked in ``tiles`` (ceil(h / tile), ceil(w / tile))
-    are computed on every level (``tile >= 2^depth``); the others are left as they were (a single search
-    reads no other cell, :func:`_reached_tiles`). A level-``d`` cell needs level ``d - 1`` up to
-    ``2^(d-1)`` cells above and to the right, so level ``d`` is computed ``2^depth - 2^d`` cells beyond the
-    marked tiles in both directions. The result is a view of the flat ``buffer`` when it is large enough,
-    else a new array."""
+    are computed on every level; the others are left as they were (a single search reads no other cell,
+    :func:`_reached_tiles`). A level-``d`` cell needs level ``d - 1`` up to ``2^(d-1)`` rows and columns
+    beyond it, so level ``d`` is computed ``2^depth - 2^d`` rows and columns beyond the marked tiles (towards
+    higher indices). The result is a view of the flat ``buffer`` when it is large enough, else a new
+    array."""
     gh, gw = score.shape
     size = (depth + 1) * h * w
     if buffer.shape[0] >= size:
@@ -1079,7 +1079,7 @@ def branch_and_bound_search(
         grow = r_max * n_ang * theta_step_rad + window_xy_m + 2 * res
         box[:2] = np.maximum(box[:2], at_centre.min(axis=0) - grow)
         box[2:] = np.minimum(box[2:], at_centre.max(axis=0) + grow)
-        # built only on the tiles some transformed point reaches, in the grid's reused memory
+        # placed here, built below once the points are placed in it
         layout = _PyramidLayout.of_grid(grid, bnb_depth(window_xy_m, res), pool, box)
     cost_lin = cost_ang = 0.0
     if prior_weight > 0 and prior_sigma_xy_m and prior_sigma_theta_rad:
