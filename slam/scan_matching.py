@@ -617,6 +617,36 @@ def _max2_rows(a0: NDArray[np.float32], a1: NDArray[np.float32], out: NDArray[np
         out[x] = max(a0[x], a1[x])
 
 
+@nb.njit(cache=True)
+def _column_spans(
+    tiles: NDArray[np.bool_],
+    lo: int,
+    hi: int,
+    tile: int,
+    ext: int,
+    w: int,
+    span_s: NDArray[np.int64],
+    span_e: NDArray[np.int64],
+) -> int:
+    """The column spans of the runs of tile columns marked in any of the tile rows ``lo..hi`` of
+    ``tiles``, each extended by ``ext`` columns and clipped to ``w``: written to ``span_s`` / ``span_e``
+    (starts, ends); returns how many."""
+    n = 0
+    tx = 0
+    n_tx = tiles.shape[1]
+    while tx < n_tx:
+        if not tiles[lo : hi + 1, tx].any():
+            tx += 1
+            continue
+        first = tx
+        while tx < n_tx and tiles[lo : hi + 1, tx].any():
+            tx += 1
+        span_s[n] = first * tile
+        span_e[n] = min(tx * tile + ext, w)
+        n += 1
+    return n
+
+
 @nb.njit(cache=True, fastmath=True)
 def _score_pyramid(
     score: NDArray[np.float32],
@@ -655,29 +685,27 @@ def _score_pyramid(
     xa = max(max(nz_c0, 0) - c0, 0)
     xb = min(min(nz_c1, gw) - c0, w)
     n_ty, n_tx = tiles.shape
-    cols = np.zeros(n_tx, dtype=np.bool_)
+    # per level, the column spans [s, e) of the current band of tile rows (they change only where a row
+    # enters or leaves a tile row's extent, so they are found again only there)
+    span_s = np.empty((depth + 1, n_tx), dtype=np.int64)
+    span_e = np.empty((depth + 1, n_tx), dtype=np.int64)
+    n_spans = np.zeros(depth + 1, dtype=np.int64)
+    band = np.full((depth + 1, 2), -1, dtype=np.int64)
     # one pass from the top row down, every level of a row at once: level d of row y needs level d - 1 of
     # rows y and y + 2^(d-1), both done, and still in cache
     for y in range(h - 1, -1, -1):
         gy = r0 + y
         for d in range(depth + 1):
-            # the tile columns of row y on level d: those of the tile rows it lies in or extends
+            # level d of row y: the tile rows it lies in or extends (by ext rows and columns)
             ext = (1 << depth) - (1 << d)
-            cols[:] = False
-            for ty in range(max((y - ext) // tile, 0), min(y // tile, n_ty - 1) + 1):
-                for tx in range(n_tx):
-                    cols[tx] |= tiles[ty, tx]
+            lo, hi = max((y - ext) // tile, 0), min(y // tile, n_ty - 1)
+            if band[d, 0] != lo or band[d, 1] != hi:
+                band[d, 0], band[d, 1] = lo, hi
+                n_spans[d] = _column_spans(tiles, lo, hi, tile, ext, w, span_s[d], span_e[d])
             half = (1 << (d - 1)) if d > 0 else 0
-            tx = 0
-            while tx < n_tx:
-                if not cols[tx]:
-                    tx += 1
-                    continue
-                run = tx
-                while tx < n_tx and cols[tx]:
-                    tx += 1
-                s = run * tile
-                e = min(tx * tile + ext, w)
+            for k in range(n_spans[d]):
+                s = span_s[d, k]
+                e = span_e[d, k]
                 row = out[d, y]
                 if d == 0:
                     if gy < ya or gy >= yb or xa >= xb:
