@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+import pipeline  # noqa: F401  (first: sets the vector width numba compiles for, pipeline.simd)
 from datasets.paths import REPO_DIR, SHARED_DATA_DIR
 
 REPO = REPO_DIR
