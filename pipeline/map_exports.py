@@ -27,6 +27,7 @@ from mapping.exports import (
     write_map_server,
 )
 from mapping.figures import (
+    collecting_new_objects_only,
     plot_before_after_maps,
     plot_classified,
     plot_difference,
@@ -163,7 +164,9 @@ def write_maps(
         data = {name: pool.submit(write_map_data, maps_dir / name, m) for name, m in maps.items()}
         figures = []
         if export.png:
-            with png_encoding_in(pool):  # encoded by whichever worker is free, while the next is drawn
+            # encoded by whichever worker is free, while the next is drawn; the run's objects left out of
+            # the collections that free each figure
+            with png_encoding_in(pool), collecting_new_objects_only():
                 figures = _write_figures(maps_dir, maps, trajectories, closures_xy_m, cfg, ate_m)
         return [f for name in maps for f in data[name].result()] + figures + [bag_written.result()]
 

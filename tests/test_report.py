@@ -309,6 +309,31 @@ def test_a_figure_saved_before_is_freed_when_the_next_is_saved(tmp_path) -> None
             gc.enable()
 
 
+def test_figures_are_freed_while_older_objects_are_frozen(tmp_path) -> None:
+    """Within collecting_new_objects_only the objects alive before are frozen (out of every collection),
+    save_figure's collection still frees the figure dropped before (made inside the block), and the block
+    thaws what it froze."""
+    kinds = _figure_kinds()
+    before = gc.get_freeze_count()
+    old = [[i] for i in range(50_000)]  # tracked objects alive before the block
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        with figures.collecting_new_objects_only():
+            assert gc.get_freeze_count() >= before + len(old)
+            first = kinds["probability"]()
+            gone = weakref.ref(first)
+            figures.save_figure(first, tmp_path / "first.png")
+            del first
+            figures.save_figure(kinds["variance"](), tmp_path / "second.png")
+            assert gone() is None
+        assert gc.get_freeze_count() == 0
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+    del old
+
+
 def test_png_encoding_in_a_pool_writes_the_same_files(tmp_path) -> None:
     """Within png_encoding_in, save_figure hands the encoding to the pool: when the block ends, the files
     are those written directly, byte for byte. An error inside the block is the one raised, after the
